@@ -1,0 +1,29 @@
+//! # dpslam
+//!
+//! Laser SLAM with particle filters and distributed-particle maps (DP-SLAM,
+//! Eliazar & Parr), in 2-D and 3-D from one implementation.
+//!
+//! The pipeline, per laser scan: [`filter::ParticleFilter::step`] calls
+//! predict (motion model), weigh (laser model on each particle's view of the
+//! DP-map), resample, update (add the scan to the DP-map under new ancestry
+//! nodes) and prune (drop dead ancestry branches, collapse only-children).
+//!
+//! Frames and units, everywhere unless a doc comment says otherwise: metres,
+//! radians, right-handed; 2-D poses are `x, y, θ` in the map frame (θ
+//! counter-clockwise from +x); 3-D poses are `nalgebra::Isometry3<f64>` with z up.
+
+pub mod ancestry;
+pub mod config;
+pub mod dpmap;
+pub mod error;
+pub mod eval;
+pub mod filter;
+pub mod geometry;
+pub mod io;
+pub mod laser_model;
+pub mod motion_model;
+pub mod raycast;
+pub mod scan;
+pub mod sim;
+
+pub use error::{Error, Result};

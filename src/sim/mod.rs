@@ -1,0 +1,6 @@
+//! Simulators that write logs with known ground truth, and the perturbation of
+//! corrected logs into SLAM benchmarks.
+
+pub mod perturb;
+pub mod sim2d;
+pub mod sim3d;
