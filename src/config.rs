@@ -1,1 +1,288 @@
-//! (in progress)
+//! Run configuration: one typed struct, read from TOML and/or flags, echoed
+//! as `config.toml` into every run's output folder.
+//!
+//! Defaults are the constants of the DP-SLAM 0.1.1 release (Eliazar & Parr)
+//! unless a comment says why we differ. Lengths in metres, angles in radians.
+
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Everything a mapping run needs to know.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    /// Seed of every random choice; same seed, same result, any thread count.
+    pub seed: u64,
+    /// Worker threads (0 = all cores).
+    pub threads: usize,
+    /// Particle filter.
+    pub filter: FilterConfig,
+    /// Grid.
+    pub map: MapConfig,
+    /// Laser penetration model.
+    pub laser: LaserConfig,
+    /// 2-D motion model.
+    pub motion2d: Motion2dConfig,
+}
+
+/// Particle-filter settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FilterConfig {
+    /// Particles kept after each resampling.
+    pub particles: usize,
+    /// Samples drawn per particle per step (release: 10).
+    pub samples_per_particle: usize,
+    /// Culling passes over interleaved beam subsets (release: 9).
+    pub passes: usize,
+    /// Samples worse than the best by more than this (nats) are culled (release: 13).
+    pub cull_threshold: f64,
+    /// A scan is processed only after this much translation (m) ...
+    pub min_translation: f64,
+    /// ... or this much rotation (rad) since the last processed scan.
+    pub min_rotation: f64,
+    /// Resampling scheme.
+    pub resampling: Resampling,
+}
+
+/// How the next particle set is drawn from the weighted samples.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Resampling {
+    /// Independent draws (the release's choice).
+    Multinomial,
+    /// Low-variance systematic resampling (Thrun et al., Probabilistic Robotics).
+    Systematic,
+}
+
+/// Grid settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MapConfig {
+    /// Cells per metre (release: 35; 20–35 advised).
+    pub cells_per_metre: f64,
+    /// Free-space evidence for cells every particle already sees as free is
+    /// added in place to the shared ancestor entry (averaged over particles)
+    /// instead of a new entry per particle. Hits, passes through cells with
+    /// hits and newly seen cells are per particle as in the release. `false`
+    /// restores the release's every-particle-every-cell update (slower, more memory).
+    pub shared_free_space: bool,
+}
+
+/// Laser penetration model (dissertation ch. 3) and beam selection.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LaserConfig {
+    /// Variance of the range error, m² (release low level: 0.017, σ ≈ 0.13 m).
+    pub variance: f64,
+    /// Background floor of a beam's likelihood, as `exp(-floor_cells2 / σ²_cells)`
+    /// with σ² in cell units (release: 24).
+    pub floor_cells2: f64,
+    /// The full trace runs this many cells past the measured endpoint (release: 20).
+    pub trace_past_cells: f64,
+    /// Cells further than this from the endpoint add nothing (release: 20).
+    pub max_error_cells: f64,
+    /// Prior density of unseen cells: one stop per this many metres (release: 8).
+    pub prior_stop_every: f64,
+    /// A new cell entry starts with this many cells of prior distance (release: 4).
+    pub prior_distance_cells: f64,
+    /// Culling's quick score traces from this many cells before the endpoint ...
+    pub quick_before_cells: f64,
+    /// ... to this many cells past it (release: 3.5 and 3).
+    pub quick_after_cells: f64,
+    /// Usable range, m: longer readings count as "no return" up to this range.
+    /// (Release: 7.95 for its SICK; here 0 means "the log's sensor limit, at
+    /// most 20 m", because traces cost time linear in range.)
+    pub max_range: f64,
+    /// Use at most this many beams per scan, evenly spaced (release: 180).
+    pub max_beams: usize,
+}
+
+/// The C/D/T motion model of DP-SLAM (dissertation ch. 6): motion along the
+/// mean heading (D), across it (C) and turn (T), each Gaussian with mean linear
+/// in odometry distance `d` (m) and turn `t` (rad) and std `|a·d| + |b·t|`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Motion2dConfig {
+    /// Mean of D: `[k_d, k_t]` → `k_d·d + k_t·t`.
+    pub mean_d: [f64; 2],
+    /// Mean of C added to the lateral odometry motion.
+    pub mean_c: [f64; 2],
+    /// Mean of T.
+    pub mean_t: [f64; 2],
+    /// Std of D: `[a (m/m), b (m/rad)]`.
+    pub std_d: [f64; 2],
+    /// Std of C: `[a (m/m), b (m/rad)]`.
+    pub std_c: [f64; 2],
+    /// Std of T: `[a (rad/m), b (rad/rad)]`.
+    pub std_t: [f64; 2],
+    /// Lower bound of the std of C and D, m (release: 0.8 cells at 35/m).
+    pub min_std_xy: f64,
+    /// Lower bound of the std of T, rad (release: 0.10).
+    pub min_std_t: f64,
+    /// Laser pose in the robot frame `[x, y, θ]`; `None`: the log format's
+    /// default (DP-SLAM logs: 0.40 m ahead, CARMEN: the logged laser pose).
+    pub sensor_offset: Option<[f64; 3]>,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            seed: 1,
+            threads: 0,
+            filter: FilterConfig::default(),
+            map: MapConfig::default(),
+            laser: LaserConfig::default(),
+            motion2d: Motion2dConfig::default(),
+        }
+    }
+}
+
+impl Default for FilterConfig {
+    fn default() -> Self {
+        Self {
+            particles: 50,
+            samples_per_particle: 10,
+            passes: 9,
+            cull_threshold: 13.0,
+            min_translation: 0.05,
+            min_rotation: 0.03,
+            resampling: Resampling::Multinomial,
+        }
+    }
+}
+
+impl Default for MapConfig {
+    fn default() -> Self {
+        Self {
+            cells_per_metre: 35.0,
+            shared_free_space: true,
+        }
+    }
+}
+
+impl Default for LaserConfig {
+    fn default() -> Self {
+        Self {
+            variance: 0.017,
+            floor_cells2: 24.0,
+            trace_past_cells: 20.0,
+            max_error_cells: 20.0,
+            prior_stop_every: 8.0,
+            prior_distance_cells: 4.0,
+            quick_before_cells: 3.5,
+            quick_after_cells: 3.0,
+            max_range: 0.0,
+            max_beams: 181,
+        }
+    }
+}
+
+/// The release's constants were learned in cells of 1/35 m; converted to metres here.
+const RELEASE_CELL: f64 = 1.0 / 35.0;
+
+impl Default for Motion2dConfig {
+    fn default() -> Self {
+        // Stds are the release's learned values. Means are unbiased: the
+        // release's means (e.g. D = 0.9577·d) encode one ATRV Jr's
+        // miscalibration and would bias every other robot.
+        Self {
+            mean_d: [1.0, 0.0],
+            mean_c: [0.0, 0.0],
+            mean_t: [0.0, 1.0],
+            std_d: [0.1560, 1.9924 * RELEASE_CELL],
+            std_c: [0.0630, 2.2992 * RELEASE_CELL],
+            std_t: [0.0008 / RELEASE_CELL, 0.1405],
+            min_std_xy: 0.8 * RELEASE_CELL,
+            min_std_t: 0.10,
+            sensor_offset: None,
+        }
+    }
+}
+
+impl Config {
+    /// Reads a TOML file; unknown keys are errors (typos must not pass silently).
+    pub fn from_toml_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let cfg: Config = toml::from_str(&text).map_err(|e| {
+            let line = e
+                .span()
+                .map(|s| text[..s.start].matches('\n').count() + 1)
+                .unwrap_or(0);
+            Error::at_line(path, line, e.message().to_string())
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// The configuration as TOML text.
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).expect("config serializes")
+    }
+
+    /// Checks ranges of values.
+    pub fn validate(&self) -> Result<()> {
+        let f = &self.filter;
+        let bad = |m: &str| Err(Error::Config(m.to_string()));
+        if f.particles == 0 {
+            return bad("filter.particles must be at least 1");
+        }
+        if f.samples_per_particle == 0 {
+            return bad("filter.samples_per_particle must be at least 1");
+        }
+        if f.passes == 0 {
+            return bad("filter.passes must be at least 1");
+        }
+        if !(self.map.cells_per_metre.is_finite() && self.map.cells_per_metre > 0.0) {
+            return bad("map.cells_per_metre must be positive");
+        }
+        let l = &self.laser;
+        if !(l.variance > 0.0 && l.variance.is_finite()) {
+            return bad("laser.variance must be positive");
+        }
+        if l.max_range < 0.0 || !l.max_range.is_finite() {
+            return bad("laser.max_range must be ≥ 0 (0 = sensor limit)");
+        }
+        if l.max_beams == 0 {
+            return bad("laser.max_beams must be at least 1");
+        }
+        if !(l.prior_stop_every > 0.0) {
+            return bad("laser.prior_stop_every must be positive");
+        }
+        Ok(())
+    }
+
+    /// Cell size in metres.
+    pub fn cell_size(&self) -> f64 {
+        1.0 / self.map.cells_per_metre
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn toml_round_trip_and_partial_files() {
+        let c = Config::default();
+        let back: Config = toml::from_str(&c.to_toml()).unwrap();
+        assert_eq!(c, back);
+        let partial: Config = toml::from_str("seed = 7\n[filter]\nparticles = 3\n").unwrap();
+        assert_eq!(partial.seed, 7);
+        assert_eq!(partial.filter.particles, 3);
+        assert_eq!(partial.filter.passes, 9);
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_values_are_errors_with_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("c.toml");
+        std::fs::write(&p, "seed = 1\n[filter]\nparticle = 3\n").unwrap();
+        let e = Config::from_toml_file(&p).unwrap_err().to_string();
+        assert!(e.contains("c.toml:line 3") && e.contains("particle"), "{e}");
+        std::fs::write(&p, "[filter]\nparticles = 0\n").unwrap();
+        let e = Config::from_toml_file(&p).unwrap_err().to_string();
+        assert!(e.contains("particles"), "{e}");
+    }
+}

@@ -1,1 +1,628 @@
-//! (in progress)
+//! The DP-map: one shared grid whose cells hold observation lists keyed by
+//! ancestry node (dissertation ch. 4–5), generic over dimension.
+//!
+//! Storage is sparse and grows with the area (volume) observed: cells live in
+//! hashed bricks (2-D: 16×16 cells, 3-D: 8×8×8 voxels) allocated on first
+//! touch, so there is no fixed map size. Each cell holds an unordered list of
+//! [`Entry`]s `(node, hits, distance)`. A particle sees, in each cell, the
+//! entry of its **deepest** ancestor-or-self: with the tree's depth-first
+//! numbering that is the containing entry with the largest `enter`.
+//!
+//! Linear time (ch. 5) rests on two indexes:
+//! - every node keeps a hash index `cell → position` of its entries, so that
+//!   deleting a dead node or merging an only-child into its parent costs O(1)
+//!   per entry, never a scan of the cell's list (lists are O(particles) long
+//!   where the particles disagree);
+//! - the **map cache** ([`ViewCache`]): per iteration, the first lookup of a
+//!   long-listed cell resolves the list once for all particles into breakpoints
+//!   over the depth-first order; later lookups by any particle are a binary
+//!   search. This replaces the release's per-iteration `observationArray`.
+//!
+//! The map mirrors the ancestry tree's edits ([`DpMap::apply`]).
+
+use crate::ancestry::{Change, NodeId, Numbering};
+use crate::raycast::CellKey;
+use rustc_hash::FxHashMap;
+use smallvec::SmallVec;
+
+/// One node's cumulative observation of one cell.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Entry {
+    /// The ancestry node that made the observation.
+    pub node: NodeId,
+    /// Number of laser beams that stopped in the cell (cumulative over the lineage).
+    pub hits: f32,
+    /// Total length of laser path through the cell, metres (cumulative, with prior).
+    pub distance: f32,
+}
+
+/// A cell's observation list (unordered).
+pub type CellList = SmallVec<[Entry; 1]>;
+
+const fn brick_bits(d: usize) -> u32 {
+    if d <= 2 { 4 } else { 3 }
+}
+
+/// Lists at most this long are scanned directly; longer ones go through the cache.
+const DIRECT_SCAN_MAX: usize = 6;
+
+/// A brick of `side^D` cells.
+#[derive(Debug, Clone)]
+struct Brick {
+    cells: Box<[CellList]>,
+}
+
+/// The shared observation grid.
+#[derive(Debug, Clone)]
+pub struct DpMap<const D: usize> {
+    cell: f64,
+    bricks: FxHashMap<CellKey<D>, Brick>,
+    /// Per node: where its entries are (cell → index in that cell's list).
+    index: Vec<FxHashMap<CellKey<D>, u32>>,
+    entries: usize,
+    version: u64,
+}
+
+#[inline]
+fn split<const D: usize>(k: CellKey<D>) -> (CellKey<D>, usize) {
+    let bits = brick_bits(D);
+    let mask = (1i32 << bits) - 1;
+    let mut b = [0i32; D];
+    let mut idx = 0usize;
+    for i in 0..D {
+        b[i] = k[i] >> bits;
+        idx |= ((k[i] & mask) as usize) << (bits as usize * i);
+    }
+    (b, idx)
+}
+
+/// The entry a particle with pre-order index `p` sees: the containing entry
+/// with the largest `enter` (the deepest ancestor).
+#[inline]
+fn resolve(list: &[Entry], enter: &[u32], exit: &[u32], p: u32) -> Option<Entry> {
+    let mut best: Option<(u32, Entry)> = None;
+    for e in list {
+        let n = e.node as usize;
+        let en = enter[n];
+        if en <= p && p <= exit[n] && best.is_none_or(|b| en > b.0) {
+            best = Some((en, *e));
+        }
+    }
+    best.map(|b| b.1)
+}
+
+impl<const D: usize> DpMap<D> {
+    /// An empty map with cells of `cell` metres.
+    pub fn new(cell: f64) -> Self {
+        Self {
+            cell,
+            bricks: FxHashMap::default(),
+            index: Vec::new(),
+            entries: 0,
+            version: 0,
+        }
+    }
+
+    /// Cell edge length in metres.
+    pub fn cell_size(&self) -> f64 {
+        self.cell
+    }
+
+    /// Number of stored entries over all cells.
+    pub fn entry_count(&self) -> usize {
+        self.entries
+    }
+
+    /// Number of allocated bricks.
+    pub fn brick_count(&self) -> usize {
+        self.bricks.len()
+    }
+
+    /// Cells per brick.
+    pub fn brick_cells() -> usize {
+        1usize << (brick_bits(D) as usize * D)
+    }
+
+    /// Changes whenever the map changes (for caches).
+    pub fn version(&self) -> u64 {
+        self.version
+    }
+
+    /// Approximate heap bytes used by the map and its indexes.
+    pub fn memory_bytes(&self) -> usize {
+        let per_brick = Self::brick_cells() * std::mem::size_of::<CellList>()
+            + std::mem::size_of::<(CellKey<D>, Brick)>();
+        let spilled: usize = self
+            .bricks
+            .values()
+            .flat_map(|b| b.cells.iter())
+            .filter(|c| c.spilled())
+            .map(|c| c.capacity() * std::mem::size_of::<Entry>())
+            .sum();
+        let index: usize = self
+            .index
+            .iter()
+            .map(|m| m.capacity() * (std::mem::size_of::<(CellKey<D>, u32)>() + 1))
+            .sum();
+        self.bricks.len() * per_brick + spilled + index
+    }
+
+    /// The observation list of cell `k` (empty if never observed).
+    #[inline]
+    pub fn cell(&self, k: CellKey<D>) -> &[Entry] {
+        let (b, i) = split(k);
+        match self.bricks.get(&b) {
+            Some(brick) => &brick.cells[i],
+            None => &[],
+        }
+    }
+
+    fn cell_mut(&mut self, k: CellKey<D>) -> &mut CellList {
+        let (b, i) = split(k);
+        let n = Self::brick_cells();
+        &mut self
+            .bricks
+            .entry(b)
+            .or_insert_with(|| Brick {
+                cells: vec![CellList::new(); n].into_boxed_slice(),
+            })
+            .cells[i]
+    }
+
+    fn node_index(&mut self, n: NodeId) -> &mut FxHashMap<CellKey<D>, u32> {
+        let i = n as usize;
+        if self.index.len() <= i {
+            self.index.resize_with(i + 1, FxHashMap::default);
+        }
+        &mut self.index[i]
+    }
+
+    /// Adds `node`'s observation of cell `k` (one per node and cell; a second
+    /// insert for the same pair overwrites the first).
+    pub fn insert(&mut self, node: NodeId, k: CellKey<D>, hits: f32, distance: f32) {
+        self.version += 1;
+        if let Some(&pos) = self.node_index(node).get(&k) {
+            let e = &mut self.cell_mut(k)[pos as usize];
+            e.hits = hits;
+            e.distance = distance;
+            return;
+        }
+        let list = self.cell_mut(k);
+        list.push(Entry {
+            node,
+            hits,
+            distance,
+        });
+        let pos = (list.len() - 1) as u32;
+        self.node_index(node).insert(k, pos);
+        self.entries += 1;
+    }
+
+    /// Adds `distance` (m) to `node`'s existing entry in cell `k` in place,
+    /// for free-space evidence shared by all of the node's descendants.
+    /// Returns false if the node has no entry there.
+    pub fn add_distance(&mut self, node: NodeId, k: CellKey<D>, distance: f32) -> bool {
+        let Some(&pos) = self.index.get(node as usize).and_then(|m| m.get(&k)) else {
+            return false;
+        };
+        self.version += 1;
+        self.cell_mut(k)[pos as usize].distance += distance;
+        true
+    }
+
+    /// Number of cells where `node` has an entry.
+    pub fn node_entries(&self, node: NodeId) -> usize {
+        self.index.get(node as usize).map_or(0, |m| m.len())
+    }
+
+    /// A read-only view of the map as seen by the particle holding `leaf`.
+    pub fn view<'a>(&'a self, numbering: &'a Numbering, leaf: NodeId) -> MapView<'a, D> {
+        MapView {
+            map: self,
+            enter: &numbering.enter,
+            exit: &numbering.exit,
+            leaf_enter: numbering.enter[leaf as usize],
+            last: None,
+        }
+    }
+
+    /// Mirrors the ancestry tree's edits, in order.
+    pub fn apply(&mut self, changes: &[Change]) {
+        self.version += 1;
+        for c in changes {
+            match *c {
+                Change::Removed(n) => self.remove_node(n),
+                Change::Merged { child, into } => self.merge_node(child, into),
+            }
+        }
+    }
+
+    /// Removes the entry at `pos` of cell `k` by swapping the last one in.
+    fn swap_out(&mut self, k: CellKey<D>, pos: u32) {
+        let list = self.cell_mut(k);
+        list.swap_remove(pos as usize);
+        let moved = list.get(pos as usize).map(|e| e.node);
+        self.entries -= 1;
+        if let Some(m) = moved {
+            self.index[m as usize].insert(k, pos);
+        }
+    }
+
+    fn snapshot(&self, n: NodeId) -> Vec<CellKey<D>> {
+        self.index
+            .get(n as usize)
+            .map(|m| m.keys().copied().collect())
+            .unwrap_or_default()
+    }
+
+    fn remove_node(&mut self, n: NodeId) {
+        for k in self.snapshot(n) {
+            // The index stays live while entries are swapped, so positions stay right.
+            if let Some(pos) = self.index[n as usize].remove(&k) {
+                self.swap_out(k, pos);
+            }
+        }
+        if let Some(m) = self.index.get_mut(n as usize) {
+            *m = FxHashMap::default();
+        }
+    }
+
+    fn merge_node(&mut self, child: NodeId, into: NodeId) {
+        for k in self.snapshot(child) {
+            let Some(pc) = self.index[child as usize].remove(&k) else {
+                continue;
+            };
+            match self.node_index(into).get(&k).copied() {
+                Some(px) => {
+                    // The parent's entry takes the child's (newer) values.
+                    let list = self.cell_mut(k);
+                    let (h, d) = (list[pc as usize].hits, list[pc as usize].distance);
+                    list[px as usize].hits = h;
+                    list[px as usize].distance = d;
+                    self.swap_out(k, pc);
+                }
+                None => {
+                    self.cell_mut(k)[pc as usize].node = into;
+                    self.node_index(into).insert(k, pc);
+                }
+            }
+        }
+        if let Some(m) = self.index.get_mut(child as usize) {
+            *m = FxHashMap::default();
+        }
+    }
+
+    /// Calls `f` for every allocated cell with its key and list.
+    pub fn for_each_cell(&self, mut f: impl FnMut(CellKey<D>, &[Entry])) {
+        let bits = brick_bits(D);
+        let side = 1usize << bits;
+        for (b, brick) in &self.bricks {
+            for (i, list) in brick.cells.iter().enumerate() {
+                if list.is_empty() {
+                    continue;
+                }
+                let mut k = [0i32; D];
+                for (a, kk) in k.iter_mut().enumerate() {
+                    let local = (i >> (bits as usize * a)) & (side - 1);
+                    *kk = (b[a] << bits) + local as i32;
+                }
+                f(k, list);
+            }
+        }
+    }
+
+    /// Inclusive bounds `(min, max)` of the allocated cells, or `None` if empty.
+    pub fn bounds(&self) -> Option<(CellKey<D>, CellKey<D>)> {
+        let mut lo = [i32::MAX; D];
+        let mut hi = [i32::MIN; D];
+        let mut any = false;
+        self.for_each_cell(|k, _| {
+            any = true;
+            for i in 0..D {
+                lo[i] = lo[i].min(k[i]);
+                hi[i] = hi[i].max(k[i]);
+            }
+        });
+        any.then_some((lo, hi))
+    }
+}
+
+/// One breakpoint of a resolved cell: from pre-order index `start` on (until
+/// the next breakpoint) particles see `entry`; `entry.node == NO_NODE`: unknown.
+#[derive(Debug, Clone, Copy)]
+struct Break {
+    start: u32,
+    entry: Entry,
+}
+
+const UNKNOWN: Entry = Entry {
+    node: crate::ancestry::NO_NODE,
+    hits: 0.0,
+    distance: 0.0,
+};
+
+/// The per-iteration map cache: cells resolved once for all particles.
+/// Valid for one map version and numbering; one per worker thread.
+#[derive(Debug, Default)]
+pub struct ViewCache<const D: usize> {
+    version: u64,
+    cells: FxHashMap<CellKey<D>, (u32, u32)>,
+    breaks: Vec<Break>,
+    scratch: Vec<(u32, u32, Entry)>,
+    stack: Vec<(u32, Entry)>,
+}
+
+impl<const D: usize> ViewCache<D> {
+    /// An empty cache.
+    pub fn new() -> Self {
+        Self {
+            version: u64::MAX,
+            ..Default::default()
+        }
+    }
+
+    fn sync(&mut self, version: u64) {
+        if self.version != version {
+            self.version = version;
+            self.cells.clear();
+            self.breaks.clear();
+        }
+    }
+
+    fn push_break(&mut self, start: u32, entry: Entry) {
+        if let Some(last) = self.breaks.last_mut()
+            && last.start == start
+        {
+            last.entry = entry;
+            return;
+        }
+        self.breaks.push(Break { start, entry });
+    }
+
+    /// Resolves `list` into breakpoints over the pre-order; returns their range.
+    fn build(&mut self, list: &[Entry], enter: &[u32], exit: &[u32]) -> (u32, u32) {
+        let first = self.breaks.len() as u32;
+        let mut iv = std::mem::take(&mut self.scratch);
+        iv.clear();
+        iv.extend(list.iter().map(|e| {
+            let n = e.node as usize;
+            (enter[n], exit[n], *e)
+        }));
+        // Laminar intervals: sorting by (start, −end) visits them in tree order.
+        iv.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)));
+        let mut stack = std::mem::take(&mut self.stack);
+        stack.clear();
+        self.push_break(0, UNKNOWN);
+        for &(a, b, e) in &iv {
+            while let Some(&(end, _)) = stack.last() {
+                if end >= a {
+                    break;
+                }
+                stack.pop();
+                let below = stack.last().map_or(UNKNOWN, |t| t.1);
+                self.push_break(end + 1, below);
+            }
+            stack.push((b, e));
+            self.push_break(a, e);
+        }
+        while let Some((end, _)) = stack.pop() {
+            let below = stack.last().map_or(UNKNOWN, |t| t.1);
+            if end < u32::MAX {
+                self.push_break(end + 1, below);
+            }
+        }
+        self.scratch = iv;
+        self.stack = stack;
+        (first, self.breaks.len() as u32 - first)
+    }
+}
+
+/// The map as one particle sees it: for each cell, the entry of its deepest
+/// ancestor. Cheap to create; keeps a one-brick cache because ray walks visit
+/// neighbouring cells.
+#[derive(Clone)]
+pub struct MapView<'a, const D: usize> {
+    map: &'a DpMap<D>,
+    enter: &'a [u32],
+    exit: &'a [u32],
+    leaf_enter: u32,
+    last: Option<(CellKey<D>, &'a Brick)>,
+}
+
+impl<'a, const D: usize> MapView<'a, D> {
+    #[inline]
+    fn list(&mut self, k: CellKey<D>) -> Option<&'a CellList> {
+        let (b, i) = split(k);
+        let brick = match self.last {
+            Some((lb, brick)) if lb == b => brick,
+            _ => {
+                let brick = self.map.bricks.get(&b)?;
+                self.last = Some((b, brick));
+                brick
+            }
+        };
+        Some(&brick.cells[i])
+    }
+
+    /// `(hits, distance)` of the cell as this particle sees it; `None` if unknown.
+    #[inline]
+    pub fn lookup(&mut self, k: CellKey<D>) -> Option<(f32, f32)> {
+        self.entry(k).map(|e| (e.hits, e.distance))
+    }
+
+    /// The entry this particle sees in cell `k`; `None` if unknown.
+    #[inline]
+    pub fn entry(&mut self, k: CellKey<D>) -> Option<Entry> {
+        let list = self.list(k)?;
+        resolve(list, self.enter, self.exit, self.leaf_enter)
+    }
+
+    /// As [`MapView::lookup`], resolving long lists through `cache`.
+    #[inline]
+    pub fn lookup_cached(&mut self, cache: &mut ViewCache<D>, k: CellKey<D>) -> Option<(f32, f32)> {
+        self.entry_cached(cache, k).map(|e| (e.hits, e.distance))
+    }
+
+    /// As [`MapView::entry`], resolving long lists through `cache`.
+    #[inline]
+    pub fn entry_cached(&mut self, cache: &mut ViewCache<D>, k: CellKey<D>) -> Option<Entry> {
+        let list = self.list(k)?;
+        if list.len() <= DIRECT_SCAN_MAX {
+            return resolve(list, self.enter, self.exit, self.leaf_enter);
+        }
+        cache.sync(self.map.version);
+        let (first, len) = match cache.cells.get(&k) {
+            Some(&r) => r,
+            None => {
+                let r = cache.build(list, self.enter, self.exit);
+                cache.cells.insert(k, r);
+                r
+            }
+        };
+        let br = &cache.breaks[first as usize..(first + len) as usize];
+        let i = br.partition_point(|b| b.start <= self.leaf_enter);
+        let e = br[i - 1].entry;
+        (e.node != crate::ancestry::NO_NODE).then_some(e)
+    }
+}
+
+/// A [`MapView`] paired with its thread's [`ViewCache`].
+pub struct CachedView<'a, 'c, const D: usize> {
+    /// The particle's view.
+    pub view: MapView<'a, D>,
+    /// The worker's cache.
+    pub cache: &'c mut ViewCache<D>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ancestry::AncestryTree;
+
+    #[test]
+    fn each_particle_sees_its_latest_ancestor() {
+        let mut t = AncestryTree::new(vec![()]);
+        let r = t.root();
+        let mut m = DpMap::<2>::new(0.1);
+        m.insert(r, [0, 0], 0.0, 1.0);
+        let a = t.add_child(r, ());
+        let b = t.add_child(r, ());
+        m.insert(a, [0, 0], 5.0, 1.0);
+        m.insert(b, [1, -3], 2.0, 1.0);
+        let mut num = Numbering::default();
+        t.number(&mut num);
+        let mut va = m.view(&num, a);
+        let mut vb = m.view(&num, b);
+        assert_eq!(va.lookup([0, 0]), Some((5.0, 1.0)));
+        assert_eq!(vb.lookup([0, 0]), Some((0.0, 1.0)));
+        assert_eq!(va.lookup([1, -3]), None);
+        assert_eq!(vb.lookup([1, -3]), Some((2.0, 1.0)));
+        assert_eq!(m.view(&num, r).lookup([0, 0]), Some((0.0, 1.0)));
+    }
+
+    #[test]
+    fn removal_and_merge_keep_views_and_drop_entries() {
+        let mut t = AncestryTree::new(vec![()]);
+        let r = t.root();
+        let mut m = DpMap::<3>::new(0.1);
+        m.insert(r, [0, 0, 0], 1.0, 1.0);
+        let a = t.add_child(r, ());
+        let b = t.add_child(r, ());
+        m.insert(a, [0, 0, 0], 2.0, 2.0);
+        m.insert(b, [0, 0, 0], 3.0, 3.0);
+        m.insert(b, [9, 9, -9], 3.0, 3.0);
+        let a1 = t.add_child(a, ());
+        m.insert(a1, [5, 5, 5], 4.0, 4.0);
+        assert_eq!(m.entry_count(), 5);
+        // b dies; root then has a single child a, which merges into root; a1 is held.
+        let mut held = vec![a1];
+        let ch = t.maintain(&mut held);
+        m.apply(&ch);
+        // root absorbed a's entry; a1 merged into root too (root had one child a1 then).
+        assert_eq!(t.len(), 1);
+        assert_eq!(held, vec![r]);
+        assert_eq!(m.entry_count(), 2);
+        assert_eq!(m.cell([0, 0, 0]), &[Entry { node: r, hits: 2.0, distance: 2.0 }]);
+        assert!(m.cell([9, 9, -9]).is_empty());
+        let mut num = Numbering::default();
+        t.number(&mut num);
+        assert_eq!(m.view(&num, r).lookup([5, 5, 5]), Some((4.0, 4.0)));
+    }
+
+    /// The view from the ordered lists equals a brute-force deepest-ancestor search
+    /// through random generations of births, deaths and merges.
+    #[test]
+    fn views_match_brute_force_under_random_maintenance() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+        let mut t = AncestryTree::new(vec![()]);
+        let r = t.root();
+        let mut m = DpMap::<2>::new(0.1);
+        let n = 24;
+        let mut held = vec![r; n];
+        let mut num = Numbering::default();
+        // reference: for each (particle slot) a full private map
+        let mut private: Vec<FxHashMap<CellKey<2>, (f32, f32)>> = vec![FxHashMap::default(); n];
+        let mut cache = ViewCache::new();
+        let mut longest = 0;
+        for g in 0..150 {
+            t.number(&mut num);
+            let pick: Vec<usize> = (0..n).map(|_| rng.random_range(0..n)).collect();
+            let mut new_private = Vec::new();
+            let mut updates = Vec::new();
+            for &p in pick.iter() {
+                let mut mine = private[p].clone();
+                let mut v = m.view(&num, held[p]);
+                let mut ups = Vec::new();
+                for _ in 0..5 {
+                    let k = [rng.random_range(-6..6), rng.random_range(-6..6)];
+                    if ups.iter().any(|(kk, _, _)| *kk == k) {
+                        continue;
+                    }
+                    let (h, d) = v.lookup(k).unwrap_or((0.0, 0.0));
+                    assert_eq!(mine.get(&k).copied().unwrap_or((0.0, 0.0)), (h, d), "gen {g}");
+                    let nv = (h + 1.0, d + g as f32);
+                    mine.insert(k, nv);
+                    ups.push((k, nv.0, nv.1));
+                }
+                updates.push(ups);
+                new_private.push(mine);
+            }
+            let new_held: Vec<NodeId> = pick.iter().map(|&p| t.add_child(held[p], ())).collect();
+            for (node, ups) in new_held.iter().zip(updates) {
+                for (k, h, d) in ups {
+                    m.insert(*node, k, h, d);
+                }
+            }
+            held = new_held;
+            private = new_private;
+            m.for_each_cell(|_, l| longest = longest.max(l.len()));
+            let ch = t.maintain(&mut held);
+            m.apply(&ch);
+            t.number(&mut num);
+            for (p, mine) in private.iter().enumerate() {
+                let mut v = m.view(&num, held[p]);
+                for (k, val) in mine {
+                    assert_eq!(v.lookup(*k), Some(*val), "gen {g} particle {p}");
+                    assert_eq!(v.lookup_cached(&mut cache, *k), Some(*val), "gen {g} particle {p}");
+                }
+                for x in -7..7 {
+                    let k = [x, x / 2];
+                    assert_eq!(v.lookup_cached(&mut cache, k), v.lookup(k));
+                }
+            }
+        }
+        assert!(t.len() <= 2 * n);
+        assert!(longest > DIRECT_SCAN_MAX, "the cache path was not exercised");
+    }
+}
+
+impl<const D: usize> DpMap<D> {
+    /// Histogram of list lengths: `counts[i]` = cells with `i` entries (last bucket: ≥).
+    pub fn list_length_histogram(&self, buckets: usize) -> Vec<usize> {
+        let mut h = vec![0; buckets.max(1)];
+        let last = h.len() - 1;
+        self.for_each_cell(|_, l| h[l.len().min(last)] += 1);
+        h
+    }
+}

@@ -1,1 +1,440 @@
-//! (in progress)
+//! The DP-SLAM particle filter, generic over dimension.
+//!
+//! One step ([`ParticleFilter::step`]) reads like the algorithm:
+//! predict → weigh → resample → update → prune.
+//!
+//! - **predict**: every particle draws `samples_per_particle` poses from the
+//!   motion model (its own RNG stream, seeded from the run seed, the step and
+//!   the particle index, so results do not depend on thread count).
+//! - **weigh**: samples are scored against their parent particle's view of the
+//!   DP-map, first with the release's quick endpoint-window score and then
+//!   with the full trace, each over `passes` interleaved beam subsets, culling
+//!   samples that fall `cull_threshold` nats behind the best (ch. 9).
+//! - **resample**: the next particle set is drawn from the surviving samples.
+//! - **update**: each new particle gets an ancestry node, child of its parent
+//!   particle's node, holding its observation of the scan.
+//! - **prune**: dead branches are removed and only-children collapsed, in the
+//!   tree and in the map alike.
+
+use crate::ancestry::{AncestryTree, NodeId, Numbering};
+use crate::config::{FilterConfig, Resampling};
+use crate::dpmap::{DpMap, ViewCache};
+use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
+use std::sync::Mutex;
+use crate::geometry::Pose;
+use crate::laser_model::{LaserModel, Trace};
+use crate::motion_model::MotionModel;
+use crate::raycast::CellKey;
+use crate::scan::Scan;
+use rand::{RngExt, SeedableRng};
+use rand_pcg::Pcg64;
+use rayon::prelude::*;
+use rustc_hash::FxHashMap;
+
+/// A pose recorded in the ancestry tree: the robot pose (map frame) at input scan `scan`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Stamp<P> {
+    /// Index of the scan in the input (0-based).
+    pub scan: u32,
+    /// Robot pose in the map frame.
+    pub pose: P,
+}
+
+/// A particle: the current robot pose and the ancestry node holding its map.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Particle<P> {
+    /// Robot pose in the map frame.
+    pub pose: P,
+    /// Most recent ancestry node of this particle.
+    pub node: NodeId,
+}
+
+/// A candidate pose drawn from a particle in the current step.
+#[derive(Debug, Clone, Copy)]
+struct Sample<P> {
+    pose: P,
+    parent: usize,
+}
+
+/// What one step did, for logs and run statistics.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct StepStats {
+    /// Samples drawn.
+    pub samples: usize,
+    /// Samples left after the quick culling passes.
+    pub after_quick: usize,
+    /// Samples left after the full passes.
+    pub after_full: usize,
+    /// Log-likelihood of the best sample.
+    pub best_log_likelihood: f64,
+    /// Distinct parent particles among the new particles.
+    pub distinct_parents: usize,
+    /// Live ancestry nodes after pruning.
+    pub tree_nodes: usize,
+    /// Entries in the DP-map after pruning.
+    pub map_entries: usize,
+}
+
+/// SplitMix64 finaliser: decorrelates seeds derived from small integers.
+fn mix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// An RNG stream for (run seed, step, stream index).
+pub fn stream(seed: u64, step: u64, index: u64) -> Pcg64 {
+    Pcg64::seed_from_u64(mix(seed ^ mix(step ^ mix(index))))
+}
+
+/// Stream index used for resampling (particle streams use 0..N).
+const RESAMPLE_STREAM: u64 = u64::MAX;
+
+/// The particle filter with its shared DP-map.
+pub struct ParticleFilter<const D: usize, P: Pose<D>> {
+    cfg: FilterConfig,
+    laser: LaserModel,
+    motion: Box<dyn MotionModel<D, P>>,
+    tree: AncestryTree<Stamp<P>>,
+    map: DpMap<D>,
+    numbering: Numbering,
+    particles: Vec<Particle<P>>,
+    best: usize,
+    seed: u64,
+    steps: u64,
+    /// Share free-space updates of cells all see as free (see `MapConfig`).
+    shared_free_space: bool,
+    /// Computes scan likelihoods (CPU by default).
+    scorer: Box<dyn Scorer<D, P>>,
+    /// One map cache per worker thread (plus one for callers outside the pool).
+    caches: Vec<Mutex<ViewCache<D>>>,
+}
+
+impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
+    /// A filter whose particles all start at `initial` (map frame) with the
+    /// first scan already in the map (recorded at input index `scan_index`).
+    pub fn new(
+        cfg: FilterConfig,
+        laser: LaserModel,
+        motion: Box<dyn MotionModel<D, P>>,
+        seed: u64,
+        initial: P,
+        scan: &Scan<D, P>,
+        scan_index: u32,
+    ) -> Self {
+        let tree = AncestryTree::new(vec![Stamp {
+            scan: scan_index,
+            pose: initial,
+        }]);
+        let root = tree.root();
+        let mut map = DpMap::new(laser.cell);
+        let mut numbering = Numbering::default();
+        tree.number(&mut numbering);
+        let mut view = map.view(&numbering, root);
+        let first = observe(&laser, |k| view.entry(k), &initial, scan, false);
+        for (k, h, d) in first.new {
+            map.insert(root, k, h, d);
+        }
+        let particles = vec![
+            Particle {
+                pose: initial,
+                node: root
+            };
+            cfg.particles
+        ];
+        Self {
+            cfg,
+            laser,
+            motion,
+            tree,
+            map,
+            numbering,
+            particles,
+            best: 0,
+            seed,
+            steps: 0,
+            shared_free_space: true,
+            scorer: Box::new(CpuScorer::<D>::new()),
+            caches: (0..=rayon::current_num_threads())
+                .map(|_| Mutex::new(ViewCache::new()))
+                .collect(),
+        }
+    }
+
+    /// Chooses the release's every-particle-every-cell map update (`false`)
+    /// or the shared free-space update (`true`, the default).
+    pub fn set_shared_free_space(&mut self, on: bool) {
+        self.shared_free_space = on;
+    }
+
+    /// Replaces the scan scorer (e.g. with the GPU backend).
+    pub fn set_scorer(&mut self, scorer: Box<dyn Scorer<D, P>>) {
+        self.scorer = scorer;
+    }
+
+    /// The scan scorer in use.
+    pub fn scorer(&self) -> &dyn Scorer<D, P> {
+        self.scorer.as_ref()
+    }
+
+    /// One filter step for the odometry motion `delta` (previous robot frame)
+    /// and the scan taken at the new pose (input index `scan_index`).
+    pub fn step(&mut self, delta: &P, scan: &Scan<D, P>, scan_index: u32) -> StepStats {
+        self.steps += 1;
+        let samples = self.predict(delta);
+        let (scores, after_quick, after_full) = self.weigh(&samples, scan);
+        let chosen = self.resample(&scores);
+        let distinct_parents = self.update(&samples, &scores, &chosen, scan, scan_index);
+        self.prune();
+        StepStats {
+            samples: samples.len(),
+            after_quick,
+            after_full,
+            best_log_likelihood: scores.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+            distinct_parents,
+            tree_nodes: self.tree.len(),
+            map_entries: self.map.entry_count(),
+        }
+    }
+
+    fn predict(&self, delta: &P) -> Vec<Sample<P>> {
+        let k = self.cfg.samples_per_particle;
+        let step = self.steps;
+        let seed = self.seed;
+        self.particles
+            .par_iter()
+            .enumerate()
+            .flat_map_iter(|(i, p)| {
+                let mut rng = stream(seed, step, i as u64);
+                (0..k)
+                    .map(|_| Sample {
+                        pose: self.motion.sample(&p.pose, delta, &mut rng),
+                        parent: i,
+                    })
+                    .collect::<Vec<_>>()
+            })
+            .collect()
+    }
+
+    /// Scores every sample; culled samples get −∞. Returns the scores and the
+    /// survivor counts after the quick and the full passes.
+    fn weigh(&self, samples: &[Sample<P>], scan: &Scan<D, P>) -> (Vec<f64>, usize, usize) {
+        let passes = self.cfg.passes.min(scan.beams.len().max(1));
+        let ctx = ScoreContext {
+            map: &self.map,
+            numbering: &self.numbering,
+            laser: &self.laser,
+            scan,
+        };
+        let mut scores = vec![0.0f64; samples.len()];
+        let mut alive: Vec<usize> = (0..samples.len()).collect();
+        let mut survivors = [0usize; 2];
+        for (round, trace) in [Trace::Quick, Trace::Full].into_iter().enumerate() {
+            for &i in &alive {
+                scores[i] = 0.0;
+            }
+            for pass in 0..passes {
+                let candidates: Vec<Candidate<P>> = alive
+                    .iter()
+                    .map(|&i| Candidate {
+                        node: self.particles[samples[i].parent].node,
+                        pose: samples[i].pose,
+                    })
+                    .collect();
+                let subset = BeamSubset {
+                    first: pass,
+                    stride: passes,
+                };
+                let partial = self.scorer.score(&ctx, &candidates, subset, trace);
+                for (&i, s) in alive.iter().zip(partial) {
+                    scores[i] += s;
+                }
+                let best = alive.iter().map(|&i| scores[i]).fold(f64::NEG_INFINITY, f64::max);
+                let threshold = best - self.cfg.cull_threshold;
+                alive.retain(|&i| scores[i] >= threshold);
+            }
+            survivors[round] = alive.len();
+        }
+        let mut out = vec![f64::NEG_INFINITY; samples.len()];
+        for &i in &alive {
+            out[i] = scores[i];
+        }
+        (out, survivors[0], survivors[1])
+    }
+
+    /// This worker thread's map cache.
+    fn thread_cache(&self) -> std::sync::MutexGuard<'_, ViewCache<D>> {
+        let last = self.caches.len() - 1;
+        let i = rayon::current_thread_index().map_or(last, |i| i.min(last));
+        self.caches[i].lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Indices of the samples that become the next particles, ascending.
+    fn resample(&self, scores: &[f64]) -> Vec<usize> {
+        let n = self.cfg.particles;
+        let best = scores.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let weights: Vec<f64> = scores.iter().map(|s| (s - best).exp()).collect();
+        let total: f64 = weights.iter().sum();
+        let mut cumulative = Vec::with_capacity(weights.len());
+        let mut acc = 0.0;
+        for w in &weights {
+            acc += w / total;
+            cumulative.push(acc);
+        }
+        let mut rng = stream(self.seed, self.steps, RESAMPLE_STREAM);
+        let pick = |u: f64| cumulative.partition_point(|&c| c < u).min(weights.len() - 1);
+        let mut chosen: Vec<usize> = match self.cfg.resampling {
+            Resampling::Multinomial => (0..n).map(|_| pick(rng.random::<f64>())).collect(),
+            Resampling::Systematic => {
+                let u0 = rng.random::<f64>() / n as f64;
+                (0..n).map(|i| pick(u0 + i as f64 / n as f64)).collect()
+            }
+        };
+        chosen.sort_unstable();
+        chosen
+    }
+
+    /// Creates the new particles' nodes and adds their observations to the map.
+    /// Returns the number of distinct parent particles.
+    fn update(
+        &mut self,
+        samples: &[Sample<P>],
+        scores: &[f64],
+        chosen: &[usize],
+        scan: &Scan<D, P>,
+        scan_index: u32,
+    ) -> usize {
+        // Observations are computed against the parents' views before any insert.
+        let shared = self.shared_free_space;
+        let observations: Vec<Observation<D>> = chosen
+            .par_iter()
+            .map(|&j| {
+                let s = &samples[j];
+                let mut cache = self.thread_cache();
+                let mut view = self.map.view(&self.numbering, self.particles[s.parent].node);
+                observe(&self.laser, |k| view.entry_cached(&mut cache, k), &s.pose, scan, shared)
+            })
+            .collect();
+        let share = 1.0 / chosen.len() as f32;
+        let mut next = Vec::with_capacity(chosen.len());
+        let mut best = (f64::NEG_INFINITY, 0);
+        for (i, (&j, obs)) in chosen.iter().zip(observations).enumerate() {
+            let s = &samples[j];
+            let parent = self.particles[s.parent].node;
+            let node = self.tree.add_child(
+                parent,
+                Stamp {
+                    scan: scan_index,
+                    pose: s.pose,
+                },
+            );
+            for (k, h, d) in obs.new {
+                self.map.insert(node, k, h, d);
+            }
+            for (owner, k, d) in obs.free {
+                self.map.add_distance(owner, k, d * share);
+            }
+            if scores[j] > best.0 {
+                best = (scores[j], i);
+            }
+            next.push(Particle { pose: s.pose, node });
+        }
+        let mut parents: Vec<usize> = chosen.iter().map(|&j| samples[j].parent).collect();
+        parents.dedup();
+        self.particles = next;
+        self.best = best.1;
+        parents.len()
+    }
+
+    fn prune(&mut self) {
+        let mut held: Vec<NodeId> = self.particles.iter().map(|p| p.node).collect();
+        let changes = self.tree.maintain(&mut held);
+        self.map.apply(&changes);
+        for (p, h) in self.particles.iter_mut().zip(held) {
+            p.node = h;
+        }
+        self.tree.number(&mut self.numbering);
+    }
+
+    /// The current particles.
+    pub fn particles(&self) -> &[Particle<P>] {
+        &self.particles
+    }
+
+    /// Index of the particle whose sample scored best in the last step.
+    pub fn best_index(&self) -> usize {
+        self.best
+    }
+
+    /// The best particle's trajectory: one stamp per processed scan, in order.
+    pub fn best_trajectory(&self) -> Vec<Stamp<P>> {
+        self.tree.lineage(self.particles[self.best].node)
+    }
+
+    /// The shared DP-map.
+    pub fn map(&self) -> &DpMap<D> {
+        &self.map
+    }
+
+    /// The ancestry tree.
+    pub fn tree(&self) -> &AncestryTree<Stamp<P>> {
+        &self.tree
+    }
+
+    /// The current depth-first numbering of the tree (valid between steps).
+    pub fn numbering(&self) -> &Numbering {
+        &self.numbering
+    }
+
+    /// The laser model in use.
+    pub fn laser(&self) -> &LaserModel {
+        &self.laser
+    }
+}
+
+/// One pose's observation of a scan.
+struct Observation<const D: usize> {
+    /// New entries `(cell, hits, distance m)` for the observing particle's node.
+    new: Vec<(CellKey<D>, f32, f32)>,
+    /// Free-space path lengths `(owner node, cell, m)` to add in place.
+    free: Vec<(NodeId, CellKey<D>, f32)>,
+}
+
+/// One pose's observation of a scan: for each cell crossed, the path length
+/// and hits of this scan added to what the particle sees (`entry_of`), or to
+/// the prior where it has never seen the cell. With `shared_free`, a cell that
+/// the particle sees as free and this scan only passes through is reported in
+/// `free` instead, to be added in place to the entry it sees.
+fn observe<const D: usize, P: Pose<D>>(
+    laser: &LaserModel,
+    mut entry_of: impl FnMut(CellKey<D>) -> Option<crate::dpmap::Entry>,
+    pose: &P,
+    scan: &Scan<D, P>,
+    shared_free: bool,
+) -> Observation<D> {
+    let sensor = pose.compose(&scan.sensor);
+    let origin = sensor.translation();
+    let mut acc: FxHashMap<CellKey<D>, (f32, f32)> =
+        FxHashMap::with_capacity_and_hasher(scan.beams.len() * 64, Default::default());
+    for b in &scan.beams {
+        laser.trace_update(origin, sensor.rotate(b.dir), b.range, b.no_return, |k, h, d| {
+            let e = acc.entry(k).or_insert((0.0, 0.0));
+            e.0 += h;
+            e.1 += d;
+        });
+    }
+    let prior = laser.prior_distance as f32;
+    let mut new = Vec::with_capacity(acc.len() / 4);
+    let mut free = Vec::new();
+    for (k, (h, d)) in acc {
+        match entry_of(k) {
+            Some(e) if shared_free && e.hits <= 0.0 && h <= 0.0 => free.push((e.node, k, d)),
+            Some(e) => new.push((k, e.hits + h, e.distance + d)),
+            None => new.push((k, h, d + prior)),
+        }
+    }
+    // A fresh FxHashMap fed in beam order iterates in the same order on every
+    // run and thread, so the map edits (and float sums) are deterministic.
+    Observation { new, free }
+}

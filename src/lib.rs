@@ -22,8 +22,10 @@ pub mod geometry;
 pub mod io;
 pub mod laser_model;
 pub mod motion_model;
+pub mod pipeline;
 pub mod raycast;
 pub mod scan;
+pub mod scorer;
 pub mod sim;
 
 pub use error::{Error, Result};

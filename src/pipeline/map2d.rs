@@ -1,0 +1,259 @@
+//! The 2-D mapping run: a CARMEN or DP-SLAM log in, a run folder out.
+
+use crate::config::Config;
+use crate::filter::{ParticleFilter, StepStats};
+use crate::geometry::{Pose, Pose2, pose2};
+use crate::io::log2d::{LogFormat, open_log2d};
+use crate::io::map_image::{OccupancyRaster, write_map};
+use crate::io::tum::write_tum;
+use crate::laser_model::LaserModel;
+use crate::motion_model::CdtModel;
+use crate::scan::{Beam, LaserScan2d, Scan};
+use crate::{Error, Result};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Hard cap on the default usable range (m): traces cost time linear in range.
+const DEFAULT_RANGE_CAP: f64 = 20.0;
+
+/// The DP-SLAM release's laser mounting for its own log format (m ahead).
+const DPSLAM_LASER_OFFSET: f64 = 0.40;
+
+/// What a 2-D run did; written as `run.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Map2dSummary {
+    /// dpslam version.
+    pub version: String,
+    /// Input log.
+    pub input: PathBuf,
+    /// Detected log format.
+    pub format: String,
+    /// Laser scans in the input (= lines of `trajectory.tum`).
+    pub scans: usize,
+    /// Scans the filter processed (the others moved too little).
+    pub scans_processed: usize,
+    /// Particles.
+    pub particles: usize,
+    /// Samples per particle.
+    pub samples_per_particle: usize,
+    /// Beams used per scan (after even thinning).
+    pub beams_per_scan: usize,
+    /// Usable laser range, m.
+    pub max_range_m: f64,
+    /// Time span of the log, s (`None` without time stamps).
+    pub data_duration_s: Option<f64>,
+    /// Wall-clock time of the run, s.
+    pub wall_time_s: f64,
+    /// Data duration / wall time (`None` without time stamps).
+    pub real_time_factor: Option<f64>,
+    /// Peak resident memory, MiB.
+    pub peak_memory_mib: Option<f64>,
+    /// Entries in the DP-map at the end.
+    pub map_entries: usize,
+    /// Approximate DP-map size, MiB.
+    pub map_memory_mib: f64,
+    /// Live ancestry nodes at the end.
+    pub tree_nodes: usize,
+    /// Mean number of samples surviving the quick culling passes.
+    pub mean_after_quick: f64,
+    /// Mean number of samples surviving all culling.
+    pub mean_after_full: f64,
+    /// Seed.
+    pub seed: u64,
+    /// Worker threads.
+    pub threads: usize,
+}
+
+/// Converts one log scan to the filter's form: evenly thinned to at most
+/// `max_beams` beams, readings beyond `max_range` (or none) as "no return".
+pub fn to_scan(s: &LaserScan2d, sensor: Pose2, max_beams: usize, max_range: f64) -> Scan<2, Pose2> {
+    let n = s.ranges.len();
+    let stride = n.div_ceil(max_beams.max(1)).max(1);
+    let beams = (0..n)
+        .step_by(stride)
+        .map(|i| {
+            let a = s.angle_min + i as f64 * s.angle_increment;
+            let r = s.ranges[i];
+            let no_return = s.is_no_return(i) || r > max_range;
+            Beam {
+                dir: [a.cos(), a.sin()],
+                range: if no_return { max_range } else { r },
+                no_return,
+            }
+        })
+        .collect();
+    Scan { sensor, beams }
+}
+
+/// Renders the map as the particle at `index` sees it.
+pub fn raster_of(filter: &ParticleFilter<2, Pose2>, index: usize) -> Result<OccupancyRaster> {
+    let map = filter.map();
+    let (lo, hi) = map
+        .bounds()
+        .ok_or_else(|| Error::Invalid("the map is empty".into()))?;
+    let width = (hi[0] - lo[0] + 1) as usize;
+    let height = (hi[1] - lo[1] + 1) as usize;
+    let mut cells = vec![None; width * height];
+    let node = filter.particles()[index].node;
+    let mut view = map.view(filter.numbering(), node);
+    let c = map.cell_size();
+    map.for_each_cell(|k, _| {
+        if let Some((h, d)) = view.lookup(k) {
+            let rho = if h > 0.0 { h as f64 / d as f64 } else { 0.0 };
+            let i = (k[1] - lo[1]) as usize * width + (k[0] - lo[0]) as usize;
+            cells[i] = Some((1.0 - (-rho * c).exp()) as f32);
+        }
+    });
+    Ok(OccupancyRaster {
+        width,
+        height,
+        resolution: c,
+        origin: [lo[0] as f64 * c, lo[1] as f64 * c],
+        cells,
+    })
+}
+
+/// Runs 2-D DP-SLAM on `log` and writes the run folder `out`.
+pub fn run_map2d(log: &Path, out: &Path, cfg: &Config) -> Result<Map2dSummary> {
+    cfg.validate()?;
+    let start = Instant::now();
+    let mut reader = open_log2d(log)?;
+    let format = reader.format();
+    let bar = super::progress_bar(reader.total_bytes(), "map2d");
+    let f = &cfg.filter;
+
+    // Per input scan: its time (or index) and odometry. Small and needed for
+    // the skipped scans' poses; the maps themselves do not grow with the log.
+    let mut stamps: Vec<(f64, Pose2)> = Vec::new();
+    let mut filter: Option<ParticleFilter<2, Pose2>> = None;
+    let mut last_processed: Option<(usize, Pose2)> = None;
+    let mut stats: Vec<StepStats> = Vec::new();
+    let mut max_range = 0.0;
+    let mut beams_per_scan = 0;
+    let mut first_time = None;
+    let mut last_time = None;
+
+    while let Some(item) = reader.next() {
+        let s = item?;
+        let index = stamps.len();
+        let t = s.timestamp.unwrap_or(index as f64);
+        if s.timestamp.is_some() {
+            first_time.get_or_insert(t);
+            last_time = Some(t);
+        }
+        stamps.push((t, s.odometry));
+        let sensor = match cfg.motion2d.sensor_offset {
+            Some([x, y, th]) => pose2(x, y, th),
+            None => match format {
+                LogFormat::DpSlam => pose2(DPSLAM_LASER_OFFSET, 0.0, 0.0),
+                LogFormat::Carmen => Pose2::identity(),
+            },
+        };
+        match (&mut filter, last_processed) {
+            (None, _) => {
+                max_range = if cfg.laser.max_range > 0.0 {
+                    cfg.laser.max_range
+                } else {
+                    s.max_range.min(DEFAULT_RANGE_CAP)
+                };
+                let scan = to_scan(&s, sensor, cfg.laser.max_beams, max_range);
+                beams_per_scan = scan.beams.len();
+                let laser = LaserModel::new(&cfg.laser, cfg.cell_size(), max_range);
+                let motion = Box::new(CdtModel {
+                    cfg: cfg.motion2d.clone(),
+                });
+                let mut filt = ParticleFilter::new(
+                    f.clone(),
+                    laser,
+                    motion,
+                    cfg.seed,
+                    Pose2::identity(),
+                    &scan,
+                    index as u32,
+                );
+                filt.set_shared_free_space(cfg.map.shared_free_space);
+                filter = Some(filt);
+                last_processed = Some((index, s.odometry));
+            }
+            (Some(filt), Some((_, odo0))) => {
+                let delta = odo0.inverse() * s.odometry;
+                if delta.translation.vector.norm() >= f.min_translation
+                    || delta.rotation.angle().abs() >= f.min_rotation
+                {
+                    let scan = to_scan(&s, sensor, cfg.laser.max_beams, max_range);
+                    stats.push(filt.step(&delta, &scan, index as u32));
+                    last_processed = Some((index, s.odometry));
+                }
+            }
+            (Some(_), None) => unreachable!("a filter exists only after the first scan"),
+        }
+        bar.set_position(reader.bytes_read());
+    }
+    bar.finish_and_clear();
+    let filter = filter.ok_or_else(|| Error::in_file(log, "no laser scans"))?;
+
+    // Trajectory: processed scans from the best particle, the others by odometry.
+    let corrected = filter.best_trajectory();
+    let mut rows = Vec::with_capacity(stamps.len());
+    let mut next = corrected.iter().peekable();
+    let mut anchor: Option<(Pose2, Pose2)> = None; // (corrected, odometry) of the last processed scan
+    for (i, (t, odo)) in stamps.iter().enumerate() {
+        let pose = match next.peek() {
+            Some(st) if st.scan as usize == i => {
+                let p = st.pose;
+                next.next();
+                anchor = Some((p, *odo));
+                p
+            }
+            _ => {
+                let (p, o) = anchor.expect("the first scan is always processed");
+                p * (o.inverse() * odo)
+            }
+        };
+        if !Pose::<2>::is_finite(&pose) {
+            return Err(Error::Invalid(format!("non-finite pose at scan {i}")));
+        }
+        rows.push((*t, Pose::<2>::to_tum(&pose)));
+    }
+
+    if std::env::var_os("DPSLAM_DEBUG").is_some() {
+        eprintln!("list lengths: {:?}", filter.map().list_length_histogram(64));
+    }
+    let raster = raster_of(&filter, filter.best_index())?;
+    let wall = start.elapsed().as_secs_f64();
+    let duration = match (first_time, last_time) {
+        (Some(a), Some(b)) if b > a => Some(b - a),
+        _ => None,
+    };
+    let n_steps = stats.len().max(1) as f64;
+    let summary = Map2dSummary {
+        version: env!("CARGO_PKG_VERSION").to_string(),
+        input: log.to_path_buf(),
+        format: format!("{format:?}"),
+        scans: stamps.len(),
+        scans_processed: stats.len() + 1,
+        particles: f.particles,
+        samples_per_particle: f.samples_per_particle,
+        beams_per_scan,
+        max_range_m: max_range,
+        data_duration_s: duration,
+        wall_time_s: wall,
+        real_time_factor: duration.map(|d| d / wall),
+        peak_memory_mib: super::peak_memory_mib(),
+        map_entries: filter.map().entry_count(),
+        map_memory_mib: filter.map().memory_bytes() as f64 / (1024.0 * 1024.0),
+        tree_nodes: filter.tree().len(),
+        mean_after_quick: stats.iter().map(|s| s.after_quick as f64).sum::<f64>() / n_steps,
+        mean_after_full: stats.iter().map(|s| s.after_full as f64).sum::<f64>() / n_steps,
+        seed: cfg.seed,
+        threads: rayon::current_num_threads(),
+    };
+
+    super::create_out_dir(out)?;
+    write_map(out, "map", &raster)?;
+    write_tum(&out.join("trajectory.tum"), &rows)?;
+    super::write_atomic(&out.join("config.toml"), cfg.to_toml().as_bytes())?;
+    super::write_json(&out.join("run.json"), &summary)?;
+    Ok(summary)
+}

@@ -1,0 +1,151 @@
+//! Scan scoring backends: the likelihood of a scan for many candidate poses,
+//! each against its own particle's view of the DP-map.
+//!
+//! Weighing is where the time goes (candidates × beams × cells per beam), so
+//! it sits behind one trait: [`CpuScorer`] (rayon) is the reference, and the
+//! optional GPU path (`gpu` feature) implements the same contract and is
+//! tested against it.
+
+use crate::ancestry::{NodeId, Numbering};
+use crate::dpmap::{CachedView, DpMap, ViewCache};
+use crate::geometry::Pose;
+use crate::laser_model::{LaserModel, Trace};
+use crate::scan::Scan;
+use rayon::prelude::*;
+use std::sync::Mutex;
+
+/// A pose to score and the ancestry node whose map view scores it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Candidate<P> {
+    /// The particle's most recent ancestry node.
+    pub node: NodeId,
+    /// Robot pose in the map frame.
+    pub pose: P,
+}
+
+/// The beams a pass scores: `first, first + stride, first + 2·stride, …`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BeamSubset {
+    /// First beam index.
+    pub first: usize,
+    /// Step between beams (≥ 1).
+    pub stride: usize,
+}
+
+impl BeamSubset {
+    /// Every beam.
+    pub const ALL: BeamSubset = BeamSubset {
+        first: 0,
+        stride: 1,
+    };
+}
+
+/// What every candidate of one scoring call shares.
+pub struct ScoreContext<'a, const D: usize, P: Pose<D>> {
+    /// The shared DP-map.
+    pub map: &'a DpMap<D>,
+    /// Depth-first numbering of the ancestry tree, current for `map`.
+    pub numbering: &'a Numbering,
+    /// The laser model.
+    pub laser: &'a LaserModel,
+    /// The scan (beams in the sensor frame).
+    pub scan: &'a Scan<D, P>,
+}
+
+/// Computes scan log-likelihoods for candidate poses.
+pub trait Scorer<const D: usize, P: Pose<D>>: Send + Sync {
+    /// Backend name for logs ("cpu", "gpu").
+    fn name(&self) -> &'static str;
+
+    /// For each candidate, the sum over the beams of `subset` of the beam
+    /// log-likelihood ([`LaserModel::beam_log_likelihood`] with `trace`).
+    fn score(
+        &self,
+        ctx: &ScoreContext<'_, D, P>,
+        candidates: &[Candidate<P>],
+        subset: BeamSubset,
+        trace: Trace,
+    ) -> Vec<f64>;
+}
+
+/// The reference scorer: candidates in parallel with rayon, one map cache
+/// per worker thread.
+pub struct CpuScorer<const D: usize> {
+    caches: Vec<Mutex<ViewCache<D>>>,
+}
+
+impl<const D: usize> Default for CpuScorer<D> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const D: usize> CpuScorer<D> {
+    /// A scorer with caches for the current rayon pool.
+    pub fn new() -> Self {
+        Self {
+            caches: (0..=rayon::current_num_threads())
+                .map(|_| Mutex::new(ViewCache::new()))
+                .collect(),
+        }
+    }
+
+    /// This worker thread's map cache.
+    pub fn thread_cache(&self) -> std::sync::MutexGuard<'_, ViewCache<D>> {
+        let last = self.caches.len() - 1;
+        let i = rayon::current_thread_index().map_or(last, |i| i.min(last));
+        self.caches[i].lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Score of one candidate (see [`Scorer::score`]).
+    pub fn score_one<P: Pose<D>>(
+        &self,
+        ctx: &ScoreContext<'_, D, P>,
+        c: &Candidate<P>,
+        subset: BeamSubset,
+        trace: Trace,
+    ) -> f64 {
+        let mut cache = self.thread_cache();
+        let mut view = CachedView {
+            view: ctx.map.view(ctx.numbering, c.node),
+            cache: &mut cache,
+        };
+        let sensor = c.pose.compose(&ctx.scan.sensor);
+        let origin = sensor.translation();
+        ctx.scan
+            .beams
+            .iter()
+            .skip(subset.first)
+            .step_by(subset.stride.max(1))
+            .map(|b| {
+                ctx.laser.beam_log_likelihood(
+                    &mut view,
+                    origin,
+                    sensor.rotate(b.dir),
+                    b.range,
+                    b.no_return,
+                    trace,
+                )
+            })
+            .sum()
+    }
+}
+
+impl<const D: usize, P: Pose<D>> Scorer<D, P> for CpuScorer<D> {
+    fn name(&self) -> &'static str {
+        "cpu"
+    }
+
+    fn score(
+        &self,
+        ctx: &ScoreContext<'_, D, P>,
+        candidates: &[Candidate<P>],
+        subset: BeamSubset,
+        trace: Trace,
+    ) -> Vec<f64> {
+        candidates
+            .par_iter()
+            .map(|c| self.score_one(ctx, c, subset, trace))
+            .collect()
+    }
+}
