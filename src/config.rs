@@ -24,6 +24,32 @@ pub struct Config {
     pub laser: LaserConfig,
     /// 2-D motion model.
     pub motion2d: Motion2dConfig,
+    /// 3-D mode (voxel map, sweeps, 6-DoF motion and proposal).
+    pub map3d: Map3dConfig,
+}
+
+/// 3-D mode settings. The 2-D sections `filter` and `laser` apply to 3-D too
+/// where their meaning is the same (particles, culling, penetration model in
+/// cell units); this section holds what is 3-D only.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Map3dConfig {
+    /// Voxel edge length, m.
+    pub voxel_size: f64,
+    /// Beams kept per sweep after down-sampling (bounds the cost per sweep).
+    pub max_beams: usize,
+    /// Usable range, m (longer returns count as no return up to here).
+    pub max_range: f64,
+}
+
+impl Default for Map3dConfig {
+    fn default() -> Self {
+        Self {
+            voxel_size: 0.2,
+            max_beams: 3000,
+            max_range: 60.0,
+        }
+    }
 }
 
 /// Particle-filter settings.
@@ -135,6 +161,7 @@ impl Default for Config {
             map: MapConfig::default(),
             laser: LaserConfig::default(),
             motion2d: Motion2dConfig::default(),
+            map3d: Map3dConfig::default(),
         }
     }
 }
