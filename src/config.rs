@@ -30,16 +30,56 @@ pub struct Config {
 
 /// 3-D mode settings. The 2-D sections `filter` and `laser` apply to 3-D too
 /// where their meaning is the same (particles, culling, penetration model in
-/// cell units); this section holds what is 3-D only.
+/// cell units); this section holds what is 3-D only. Lengths in metres,
+/// angles in radians; frames are the sensor frame of each sweep (beams) and
+/// the map frame (poses, voxels).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Map3dConfig {
-    /// Voxel edge length, m.
+    /// Voxel edge length of the DP-map, m.
     pub voxel_size: f64,
     /// Beams kept per sweep after down-sampling (bounds the cost per sweep).
     pub max_beams: usize,
     /// Usable range, m (longer returns count as no return up to here).
     pub max_range: f64,
+    /// Points closer than this to the sensor are dropped (robot body, noise), m.
+    pub min_range: f64,
+    /// Beam down-sampling: one beam per voxel of this edge (m) in the sensor
+    /// frame, before the even stride that enforces `max_beams`.
+    pub beam_voxel: f64,
+    /// Range-error variance σ² of the penetration model in 3-D, m²; replaces
+    /// `laser.variance`, whose default (0.017) suits 2.9 cm cells, not voxels.
+    pub variance: f64,
+    /// A voxel of the best particle's view is exported to `map.ply` when it
+    /// has hits and a density ρ = hits / distance of at least this (stops/m).
+    pub occupied_density: f64,
+    /// 6-DoF motion noise: translation std per metre of motion (m/m) ...
+    pub trans_std_per_m: f64,
+    /// ... plus per radian of rotation (m/rad) ...
+    pub trans_std_per_rad: f64,
+    /// ... at least this, m (per axis).
+    pub min_trans_std: f64,
+    /// Rotation noise std per metre of motion (rad/m) ...
+    pub rot_std_per_m: f64,
+    /// ... plus per radian of rotation (rad/rad) ...
+    pub rot_std_per_rad: f64,
+    /// ... at least this, rad (per axis of the small-angle vector).
+    pub min_rot_std: f64,
+    /// Proposal: sweeps of the best particle's recent past in the local map.
+    pub local_map_sweeps: usize,
+    /// Proposal: voxel (m) of the finest ICP level; each coarser level doubles it.
+    pub icp_voxel: f64,
+    /// Proposal: number of ICP levels, coarse to fine.
+    pub icp_levels: usize,
+    /// Proposal: correspondence radius of the coarsest level, m; it halves
+    /// at each finer level.
+    pub icp_max_distance: f64,
+    /// Proposal: Gauss-Newton iterations per level, at most.
+    pub icp_iterations: usize,
+    /// Proposal: source points used per level, at most (even stride).
+    pub icp_max_points: usize,
+    /// `points.ply`: one registered point per voxel of this edge, m.
+    pub points_voxel: f64,
 }
 
 impl Default for Map3dConfig {
@@ -48,6 +88,23 @@ impl Default for Map3dConfig {
             voxel_size: 0.2,
             max_beams: 3000,
             max_range: 60.0,
+            min_range: 0.5,
+            beam_voxel: 0.2,
+            variance: 0.04,
+            occupied_density: 0.5,
+            trans_std_per_m: 0.01,
+            trans_std_per_rad: 0.02,
+            min_trans_std: 0.01,
+            rot_std_per_m: 0.001,
+            rot_std_per_rad: 0.01,
+            min_rot_std: 0.002,
+            local_map_sweeps: 10,
+            icp_voxel: 0.1,
+            icp_levels: 4,
+            icp_max_distance: 3.0,
+            icp_iterations: 30,
+            icp_max_points: 5000,
+            points_voxel: 0.1,
         }
     }
 }
@@ -102,9 +159,11 @@ pub struct MapConfig {
 pub struct LaserConfig {
     /// Variance of the range error, m² (release low level: 0.017, σ ≈ 0.13 m).
     pub variance: f64,
-    /// Background floor of a beam's likelihood, as `exp(-floor_cells2 / σ²_cells)`
-    /// with σ² in cell units (release: 24).
-    pub floor_cells2: f64,
+    /// Background floor of a beam's likelihood: the chance that something the
+    /// model does not explain happened. The release uses `exp(−24/σ²)` in
+    /// cells² at 35 cells/m, i.e. 0.316; kept fixed here whatever the grid
+    /// resolution, because sensor outliers do not depend on the grid.
+    pub beam_floor: f64,
     /// The full trace runs this many cells past the measured endpoint (release: 20).
     pub trace_past_cells: f64,
     /// Cells further than this from the endpoint add nothing (release: 20).
@@ -193,7 +252,7 @@ impl Default for LaserConfig {
     fn default() -> Self {
         Self {
             variance: 0.017,
-            floor_cells2: 24.0,
+            beam_floor: (-24.0f64 / (0.017 * 35.0 * 35.0)).exp(),
             trace_past_cells: 20.0,
             max_error_cells: 20.0,
             prior_stop_every: 8.0,
@@ -273,6 +332,9 @@ impl Config {
         }
         if l.max_beams == 0 {
             return bad("laser.max_beams must be at least 1");
+        }
+        if !(l.beam_floor > 0.0 && l.beam_floor < 1.0) {
+            return bad("laser.beam_floor must be in (0, 1)");
         }
         if !(l.prior_stop_every > 0.0) {
             return bad("laser.prior_stop_every must be positive");

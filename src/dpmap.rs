@@ -71,9 +71,27 @@ fn split<const D: usize>(k: CellKey<D>) -> (CellKey<D>, usize) {
     let mut idx = 0usize;
     for i in 0..D {
         b[i] = k[i] >> bits;
-        idx |= ((k[i] & mask) as usize) << (bits as usize * i);
+        // Morton (Z-order) interleave inside the brick: a ray's neighbouring
+        // cells share cache lines along every axis, not just along x.
+        let local = (k[i] & mask) as usize;
+        for bit in 0..bits as usize {
+            idx |= ((local >> bit) & 1) << (bit * D + i);
+        }
     }
     (b, idx)
+}
+
+/// Inverse of the in-brick part of [`split`]: local coordinates of index `idx`.
+#[inline]
+fn unsplit_local<const D: usize>(idx: usize) -> [usize; D] {
+    let bits = brick_bits(D) as usize;
+    let mut local = [0usize; D];
+    for (i, l) in local.iter_mut().enumerate() {
+        for bit in 0..bits {
+            *l |= ((idx >> (bit * D + i)) & 1) << bit;
+        }
+    }
+    local
 }
 
 /// The entry a particle with pre-order index `p` sees: the containing entry
@@ -241,6 +259,11 @@ impl<const D: usize> DpMap<D> {
     fn swap_out(&mut self, k: CellKey<D>, pos: u32) {
         let list = self.cell_mut(k);
         list.swap_remove(pos as usize);
+        // Lists swell to O(particles) where particles disagree and shrink back
+        // once they agree: give the memory back, or it would grow with time.
+        if list.spilled() && list.len() * 4 <= list.capacity() {
+            list.shrink_to_fit();
+        }
         let moved = list.get(pos as usize).map(|e| e.node);
         self.entries -= 1;
         if let Some(m) = moved {
@@ -295,16 +318,15 @@ impl<const D: usize> DpMap<D> {
     /// Calls `f` for every allocated cell with its key and list.
     pub fn for_each_cell(&self, mut f: impl FnMut(CellKey<D>, &[Entry])) {
         let bits = brick_bits(D);
-        let side = 1usize << bits;
         for (b, brick) in &self.bricks {
             for (i, list) in brick.cells.iter().enumerate() {
                 if list.is_empty() {
                     continue;
                 }
+                let local = unsplit_local::<D>(i);
                 let mut k = [0i32; D];
                 for (a, kk) in k.iter_mut().enumerate() {
-                    let local = (i >> (bits as usize * a)) & (side - 1);
-                    *kk = (b[a] << bits) + local as i32;
+                    *kk = (b[a] << bits) + local[a] as i32;
                 }
                 f(k, list);
             }
@@ -497,6 +519,23 @@ pub struct CachedView<'a, 'c, const D: usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn split_is_a_bijection_within_bricks() {
+        let mut seen = std::collections::HashSet::new();
+        for x in -20..20 {
+            for y in -20..20 {
+                let (b, i) = split([x, y]);
+                assert!(i < DpMap::<2>::brick_cells());
+                assert!(seen.insert((b, i)));
+                let l = unsplit_local::<2>(i);
+                assert_eq!([(b[0] << 4) + l[0] as i32, (b[1] << 4) + l[1] as i32], [x, y]);
+            }
+        }
+        let (b, i) = split([-9, 17, 5]);
+        let l = unsplit_local::<3>(i);
+        assert_eq!([(b[0] << 3) + l[0] as i32, (b[1] << 3) + l[1] as i32, (b[2] << 3) + l[2] as i32], [-9, 17, 5]);
+    }
     use crate::ancestry::AncestryTree;
 
     #[test]

@@ -70,11 +70,10 @@ pub struct LaserModel {
 impl LaserModel {
     /// The model for `cfg` on a grid of `cell` metres with usable range `max_range` (m).
     pub fn new(cfg: &LaserConfig, cell: f64, max_range: f64) -> Self {
-        let variance_cells = cfg.variance / (cell * cell);
         Self {
             cell,
             variance: cfg.variance,
-            floor: (-cfg.floor_cells2 / variance_cells).exp(),
+            floor: cfg.beam_floor,
             trace_past: cfg.trace_past_cells * cell,
             max_error: cfg.max_error_cells * cell,
             prior_density: 1.0 / cfg.prior_stop_every,
@@ -220,7 +219,7 @@ mod tests {
         // A reading 0.5 m short of the wall is much less likely.
         let short = m.beam_log_likelihood(&mut g, origin, [1.0, 0.0], 1.5, false, Trace::Full);
         assert!(short < ll - 1.0);
-        // Floor: never below exp(-24/σ²_cells).
+        // Floor: never below the configured background.
         assert!(short >= m.floor.ln() - 1e-12);
     }
 

@@ -13,16 +13,21 @@
 //! counter-clockwise from +x); 3-D poses are `nalgebra::Isometry3<f64>` with z up.
 
 pub mod ancestry;
+pub mod bench;
+pub mod backend;
 pub mod config;
 pub mod dpmap;
 pub mod error;
 pub mod eval;
 pub mod filter;
 pub mod geometry;
+#[cfg(feature = "gpu")]
+pub mod gpu;
 pub mod io;
 pub mod laser_model;
 pub mod motion_model;
 pub mod pipeline;
+pub mod proposal;
 pub mod raycast;
 pub mod scan;
 pub mod scorer;

@@ -97,3 +97,105 @@ mod tests {
         assert!((st / n as f64).abs() < 0.01);
     }
 }
+
+/// 6-DoF motion model for 3-D sweeps: the given relative motion `delta`
+/// (previous robot frame) followed by a Gaussian perturbation, also in the
+/// robot frame, of the translation (m, per axis) and of the rotation (rad,
+/// small-angle axis vector, per axis). Each std is proportional to the size
+/// of the motion, with a floor, from [`crate::config::Map3dConfig`]:
+/// `σ_t = max(a_t·|t| + b_t·θ, min_t)`, `σ_r = max(a_r·|t| + b_r·θ, min_r)`
+/// with `|t|` the translation (m) and θ the rotation angle (rad) of `delta`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Gaussian6dModel {
+    /// Translation std per metre of motion (m/m) and per radian (m/rad).
+    pub trans_std: [f64; 2],
+    /// Rotation std per metre of motion (rad/m) and per radian (rad/rad).
+    pub rot_std: [f64; 2],
+    /// Floors of the translation (m) and rotation (rad) stds.
+    pub min_std: [f64; 2],
+}
+
+impl Gaussian6dModel {
+    /// The model with the noise parameters of `cfg`.
+    pub fn from_config(cfg: &crate::config::Map3dConfig) -> Self {
+        Self {
+            trans_std: [cfg.trans_std_per_m, cfg.trans_std_per_rad],
+            rot_std: [cfg.rot_std_per_m, cfg.rot_std_per_rad],
+            min_std: [cfg.min_trans_std, cfg.min_rot_std],
+        }
+    }
+
+    /// Stds `(translation m, rotation rad)` for the motion `delta`.
+    pub fn stds(&self, delta: &crate::geometry::Pose3) -> (f64, f64) {
+        let d = delta.translation.vector.norm();
+        let a = delta.rotation.angle();
+        let st = (self.trans_std[0] * d + self.trans_std[1] * a).max(self.min_std[0]);
+        let sr = (self.rot_std[0] * d + self.rot_std[1] * a).max(self.min_std[1]);
+        (st, sr)
+    }
+}
+
+impl MotionModel<3, crate::geometry::Pose3> for Gaussian6dModel {
+    fn sample(
+        &self,
+        prev: &crate::geometry::Pose3,
+        delta: &crate::geometry::Pose3,
+        rng: &mut Pcg64,
+    ) -> crate::geometry::Pose3 {
+        use nalgebra::{Translation3, UnitQuaternion, Vector3};
+        let (st, sr) = self.stds(delta);
+        let mut n = || -> f64 { StandardNormal.sample(rng) };
+        let dt = Vector3::new(n(), n(), n()) * st;
+        let dr = Vector3::new(n(), n(), n()) * sr;
+        let noisy = crate::geometry::Pose3::from_parts(
+            Translation3::from(delta.translation.vector + dt),
+            delta.rotation * UnitQuaternion::from_scaled_axis(dr),
+        );
+        prev * noisy
+    }
+}
+
+#[cfg(test)]
+mod tests_6d {
+    use super::*;
+    use crate::geometry::Pose3;
+    use nalgebra::Vector3;
+    use rand::SeedableRng;
+
+    #[test]
+    fn samples_centre_on_delta_with_configured_spread() {
+        let model = Gaussian6dModel::from_config(&crate::config::Map3dConfig::default());
+        let prev = Pose3::new(Vector3::new(1.0, 2.0, 0.5), Vector3::new(0.0, 0.0, 0.4));
+        let delta = Pose3::new(Vector3::new(2.0, 0.0, 0.0), Vector3::new(0.0, 0.0, 0.1));
+        let (st, sr) = model.stds(&delta);
+        assert!((st - (0.01 * 2.0 + 0.02 * 0.1)).abs() < 1e-12);
+        assert!((sr - (0.001 * 2.0 + 0.01 * 0.1)).abs() < 1e-12);
+        let expect = prev * delta;
+        let mut rng = Pcg64::seed_from_u64(9);
+        let n = 20000;
+        let (mut sum, mut sq, mut rsq) = (Vector3::zeros(), Vector3::zeros(), 0.0);
+        for _ in 0..n {
+            let p = model.sample(&prev, &delta, &mut rng);
+            let e = expect.inverse() * p;
+            sum += e.translation.vector;
+            sq += e.translation.vector.component_mul(&e.translation.vector);
+            rsq += e.rotation.scaled_axis().norm_squared();
+        }
+        let mean = sum / n as f64;
+        assert!(mean.norm() < 0.003, "mean {mean}");
+        for i in 0..3 {
+            let std = (sq[i] / n as f64).sqrt();
+            assert!((std - st).abs() < 0.05 * st, "axis {i}: {std} vs {st}");
+        }
+        // Three independent axes: E|r|² = 3σ_r².
+        let rstd = (rsq / (3.0 * n as f64)).sqrt();
+        assert!((rstd - sr).abs() < 0.05 * sr, "{rstd} vs {sr}");
+    }
+
+    #[test]
+    fn floors_apply_when_still() {
+        let model = Gaussian6dModel::from_config(&crate::config::Map3dConfig::default());
+        let (st, sr) = model.stds(&Pose3::identity());
+        assert_eq!((st, sr), (0.01, 0.002));
+    }
+}

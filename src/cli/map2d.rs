@@ -11,7 +11,7 @@ pub struct Map2dArgs {
     /// CARMEN (.clf/.log) or DP-SLAM log, plain or gzip [default: the shipped simulated loop]
     pub log: Option<PathBuf>,
     /// Output folder (map.png, map.pgm, map.yaml, trajectory.tum, run.json, config.toml)
-    #[arg(long)]
+    #[arg(long, default_value = "out/map2d")]
     pub out: PathBuf,
     /// Particles [default: 50, or the config file's]
     #[arg(long)]
@@ -25,6 +25,9 @@ pub struct Map2dArgs {
     /// Worker threads (0 = all cores)
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Where scan likelihoods are computed (gpu needs a build with `--features gpu` and a Vulkan driver; auto falls back to cpu)
+    #[arg(long, value_enum, default_value_t = dpslam::backend::Backend::Cpu)]
+    pub backend: dpslam::backend::Backend,
 }
 
 /// Loads the config file (if any) and applies the flags over it.
@@ -60,7 +63,7 @@ pub fn build_config(
 pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
     let cfg = build_config(a.config.as_ref(), a.particles, a.seed, a.threads)?;
     let log = a.log.unwrap_or_else(|| PathBuf::from(DEFAULT_LOG));
-    let s = dpslam::pipeline::map2d::run_map2d(&log, &a.out, &cfg)?;
+    let s = dpslam::pipeline::map2d::run_map2d_with(&log, &a.out, &cfg, a.backend)?;
     println!(
         "map2d: {} scans ({} processed), {} particles, {:.1} s wall, peak {:.0} MiB -> {}",
         s.scans,

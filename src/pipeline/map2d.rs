@@ -116,7 +116,13 @@ pub fn raster_of(filter: &ParticleFilter<2, Pose2>, index: usize) -> Result<Occu
 
 /// Runs 2-D DP-SLAM on `log` and writes the run folder `out`.
 pub fn run_map2d(log: &Path, out: &Path, cfg: &Config) -> Result<Map2dSummary> {
+    run_map2d_with(log, out, cfg, crate::backend::Backend::Cpu)
+}
+
+/// As [`run_map2d`], scoring scans on `backend` (see [`crate::backend::make_scorer`]).
+pub fn run_map2d_with(log: &Path, out: &Path, cfg: &Config, backend: crate::backend::Backend) -> Result<Map2dSummary> {
     cfg.validate()?;
+    let mut scorer = Some(crate::backend::make_scorer::<2, Pose2>(backend)?.0);
     let start = Instant::now();
     let mut reader = open_log2d(log)?;
     let format = reader.format();
@@ -173,6 +179,9 @@ pub fn run_map2d(log: &Path, out: &Path, cfg: &Config) -> Result<Map2dSummary> {
                     index as u32,
                 );
                 filt.set_shared_free_space(cfg.map.shared_free_space);
+                if let Some(sc) = scorer.take() {
+                    filt.set_scorer(sc);
+                }
                 filter = Some(filt);
                 last_processed = Some((index, s.odometry));
             }

@@ -6,6 +6,7 @@
 //! whole input was processed, so a failed run leaves no half-written output.
 
 pub mod map2d;
+pub mod map3d;
 
 use crate::{Error, Result};
 use serde::Serialize;

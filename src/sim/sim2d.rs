@@ -572,7 +572,7 @@ pub struct Sim2dOutput {
     /// The scans in time order. `odometry` and `logged_pose` are the noisy
     /// odometry (odometry frame, which starts at the true first pose);
     /// ranges are rounded to the millimetre, as written to the log;
-    /// `line` is the scan's line in the log [`Sim2dOutput::write_clf`] writes.
+    /// `line` is the scan's line in the log [`Sim2dOutput::clf_text`] writes.
     pub scans: Vec<LaserScan2d>,
     /// True robot (= laser) pose per scan: time stamp (s) and pose in the
     /// world frame.
@@ -909,24 +909,21 @@ mod tests {
     #[test]
     fn bad_configs_are_rejected_not_panicked_on() {
         let ok = Sim2dConfig::default();
-        let cases: Vec<(&str, Box<dyn Fn(&mut Sim2dConfig)>)> = vec![
-            ("speed", Box::new(|c| c.speed = 0.0)),
-            ("scan_period", Box::new(|c| c.scan_period = f64::NAN)),
-            ("range_sigma", Box::new(|c| c.range_sigma = -0.1)),
-            (
-                "odometry.rot_per_m",
-                Box::new(|c| c.odometry.rot_per_m = -1.0),
-            ),
-            ("max_range", Box::new(|c| c.max_range = 100.0)),
-            ("beams", Box::new(|c| c.beams = 0)),
-            ("host", Box::new(|c| c.host = "two words".into())),
-            ("two waypoints", Box::new(|c| c.waypoints.truncate(1))),
-            ("coincide", Box::new(|c| c.waypoints[1] = c.waypoints[0])),
-            (
-                "reverses",
-                Box::new(|c| c.waypoints = vec![[0.0, 0.0], [5.0, 0.0], [1.0, 0.0]]),
-            ),
-            ("scans", Box::new(|c| c.scan_period = 1e-9)),
+        type Change = fn(&mut Sim2dConfig);
+        let cases: [(&str, Change); 11] = [
+            ("speed", |c| c.speed = 0.0),
+            ("scan_period", |c| c.scan_period = f64::NAN),
+            ("range_sigma", |c| c.range_sigma = -0.1),
+            ("odometry.rot_per_m", |c| c.odometry.rot_per_m = -1.0),
+            ("max_range", |c| c.max_range = 100.0),
+            ("beams", |c| c.beams = 0),
+            ("host", |c| c.host = "two words".into()),
+            ("two waypoints", |c| c.waypoints.truncate(1)),
+            ("coincide", |c| c.waypoints[1] = c.waypoints[0]),
+            ("reverses", |c| {
+                c.waypoints = vec![[0.0, 0.0], [5.0, 0.0], [1.0, 0.0]]
+            }),
+            ("scans", |c| c.scan_period = 1e-9),
         ];
         for (what, change) in cases {
             let mut cfg = ok.clone();

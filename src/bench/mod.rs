@@ -1,0 +1,15 @@
+//! Benchmarks: accuracy against references and speed against particle count.
+//!
+//! - [`accuracy`]: `map2d` on every dataset with a reference (relations,
+//!   truth trajectories, the simulator), scored and written up as
+//!   `docs/RESULTS.md` with map images and trajectory plots.
+//! - [`scaling`]: time per filter iteration against the number of particles.
+//! - [`rig`]: a filter warmed up on a real log and the pieces of one step, for
+//!   timing (shared with `benches/iteration.rs`).
+//! - [`plot`], [`report`]: the PNG plots and the Markdown tables.
+
+pub mod accuracy;
+pub mod plot;
+pub mod report;
+pub mod rig;
+pub mod scaling;

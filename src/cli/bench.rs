@@ -1,0 +1,174 @@
+//! `dpslam bench ...`: benchmarks. SHARED FILE: the benchmark-suite engineer
+//! owns the `Accuracy` and `Scaling` variants, the GPU engineer owns the
+//! `Likelihood` variant. Edit only your own variant, its args struct and its
+//! dispatch arm; keep the rest.
+
+use clap::Subcommand;
+
+#[derive(Subcommand, Debug)]
+pub enum BenchCommand {
+    /// Map every dataset with a reference, score it, write docs/RESULTS.md.
+    Accuracy(AccuracyArgs),
+    /// Time per filter iteration against particle count (one JSON object).
+    Scaling(ScalingArgs),
+    /// Scan-likelihood throughput on the CPU and GPU paths, and their difference (one JSON object).
+    Likelihood(LikelihoodArgs),
+}
+
+pub fn run(c: BenchCommand) -> dpslam::Result<()> {
+    match c {
+        BenchCommand::Accuracy(a) => run_accuracy(a),
+        BenchCommand::Scaling(a) => run_scaling(a),
+        BenchCommand::Likelihood(a) => run_likelihood(a),
+    }
+}
+
+/// Options of `dpslam bench likelihood`.
+#[derive(clap::Args, Debug)]
+pub struct LikelihoodArgs {
+    /// Backends to time
+    #[arg(long, value_enum, default_value = "both")]
+    pub backend: dpslam::backend::bench::BenchBackends,
+    /// 2-D (hall mapped at 35 cells/m) or 3-D (voxel hall, 0.2 m voxels)
+    #[arg(long, default_value_t = 2)]
+    pub dim: usize,
+    /// Candidate poses scored per iteration (the filter's particles × samples) [default: 500 in 2-D, 200 in 3-D]
+    #[arg(long)]
+    pub particles: Option<usize>,
+    /// Beams per scan [default: 181 in 2-D, 2000 in 3-D]
+    #[arg(long)]
+    pub beams: Option<usize>,
+    /// Time each backend for at least this long, s
+    #[arg(long, default_value_t = 2.0)]
+    pub min_time: f64,
+    /// Seed of the map-building filter and of the candidates
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+fn run_likelihood(a: LikelihoodArgs) -> dpslam::Result<()> {
+    let three = a.dim == 3;
+    let spec = dpslam::backend::bench::LikelihoodBenchSpec {
+        dim: a.dim,
+        candidates: a.particles.unwrap_or(if three { 200 } else { 500 }),
+        beams: a.beams.unwrap_or(if three { 2000 } else { 181 }),
+        backends: a.backend,
+        min_time_s: a.min_time,
+        seed: a.seed,
+    };
+    let report = dpslam::backend::bench::bench_likelihood(&spec)?;
+    println!(
+        "{}",
+        serde_json::to_string(&report).map_err(|e| dpslam::Error::Invalid(e.to_string()))?
+    );
+    Ok(())
+}
+
+/// Options of `dpslam bench accuracy`.
+#[derive(clap::Args, Debug)]
+pub struct AccuracyArgs {
+    /// Short subset (the simulator and mit-csail, first 300 scans each): a smoke test
+    #[arg(long)]
+    pub quick: bool,
+    /// Folder for the per-dataset runs [default: target/bench-accuracy]
+    #[arg(long)]
+    pub out: Option<std::path::PathBuf>,
+    /// Particles [default: 50, or the config file's]
+    #[arg(long)]
+    pub particles: Option<usize>,
+    /// Configuration file (TOML; see docs/CONFIG.md)
+    #[arg(long)]
+    pub config: Option<std::path::PathBuf>,
+    /// Folder for RESULTS.md and results/*.png [default: docs]
+    #[arg(long)]
+    pub docs: Option<std::path::PathBuf>,
+    /// Shared datasets folder (holds carmen/) [default: ../shared/datasets]
+    #[arg(long)]
+    pub datasets: Option<std::path::PathBuf>,
+    /// Run only these datasets (comma-separated names, e.g. sim2d,mit-csail)
+    #[arg(long, value_delimiter = ',')]
+    pub only: Vec<String>,
+    /// Seed of the odometry noise added to the corrected logs
+    #[arg(long, default_value_t = dpslam::bench::accuracy::DEFAULT_NOISE_SEED)]
+    pub noise_seed: u64,
+    /// Worker threads (0 = all cores)
+    #[arg(long)]
+    pub threads: Option<usize>,
+}
+
+fn run_accuracy(a: AccuracyArgs) -> dpslam::Result<()> {
+    use dpslam::bench::accuracy::{AccuracyOptions, run_accuracy};
+    let cfg = super::map2d::build_config(a.config.as_ref(), a.particles, None, a.threads)?;
+    let mut opts = AccuracyOptions::new(cfg);
+    opts.quick = a.quick;
+    opts.only = a.only;
+    opts.noise_seed = a.noise_seed;
+    opts.command = std::env::args().collect::<Vec<_>>().join(" ");
+    if let Some(o) = a.out {
+        opts.out = o;
+    }
+    if let Some(d) = a.docs {
+        opts.docs = d;
+    }
+    if let Some(d) = a.datasets {
+        opts.datasets = d;
+    }
+    let r = run_accuracy(&opts)?;
+    println!(
+        "bench accuracy: {} datasets run, {} not run, {:.0} s -> {}",
+        r.runs.len(),
+        r.skipped.len(),
+        r.total_wall_s,
+        opts.docs.join("RESULTS.md").display()
+    );
+    Ok(())
+}
+
+/// Options of `dpslam bench scaling`.
+#[derive(clap::Args, Debug)]
+pub struct ScalingArgs {
+    /// Particle counts to time (comma-separated)
+    #[arg(long, value_delimiter = ',', default_value = "100,300,1000,3000")]
+    pub particles: Vec<usize>,
+    /// Processed scans that build the map before timing
+    #[arg(long, default_value_t = 20)]
+    pub scans: usize,
+    /// Steps timed per particle count
+    #[arg(long, default_value_t = 5)]
+    pub steps: usize,
+    /// 2-D log [default: the shipped simulated loop]
+    #[arg(long)]
+    pub log: Option<std::path::PathBuf>,
+    /// Where to write the plot (time-vs-particles.png) [default: docs/results]
+    #[arg(long)]
+    pub plot_dir: Option<std::path::PathBuf>,
+    /// Configuration file (TOML; see docs/CONFIG.md)
+    #[arg(long)]
+    pub config: Option<std::path::PathBuf>,
+    /// Worker threads (0 = all cores)
+    #[arg(long)]
+    pub threads: Option<usize>,
+}
+
+fn run_scaling(a: ScalingArgs) -> dpslam::Result<()> {
+    use dpslam::bench::scaling::{ScalingOptions, run_scaling, write_scaling_plot};
+    let cfg = super::map2d::build_config(a.config.as_ref(), None, None, a.threads)?;
+    let opts = ScalingOptions {
+        log: a.log.unwrap_or_else(|| super::map2d::DEFAULT_LOG.into()),
+        particles: a.particles,
+        warmup_scans: a.scans,
+        timed_steps: a.steps,
+        cfg,
+    };
+    let report = run_scaling(&opts)?;
+    let dir = a
+        .plot_dir
+        .unwrap_or_else(|| concat!(env!("CARGO_MANIFEST_DIR"), "/docs/results").into());
+    std::fs::create_dir_all(&dir).map_err(|e| dpslam::Error::io(&dir, e))?;
+    write_scaling_plot(&report, &dir.join("time-vs-particles.png"))?;
+    println!(
+        "{}",
+        serde_json::to_string(&report).map_err(|e| dpslam::Error::Invalid(e.to_string()))?
+    );
+    Ok(())
+}

@@ -1,0 +1,203 @@
+//! The benchmark harness: table writer, plot writer, log preparation and an
+//! end-to-end `bench accuracy --quick` on the simulator.
+
+use dpslam::bench::accuracy::{AccuracyOptions, odometry_trajectory, run_accuracy, truncate_log};
+use dpslam::bench::plot::{BACKGROUND, PALETTE, Plot, Series};
+use dpslam::bench::report::{Matching, RESULT_COLUMNS, RunResult, results_table};
+use dpslam::bench::rig::prepare_log;
+use dpslam::config::Config;
+use dpslam::eval::relations::RelationsReport;
+use std::path::{Path, PathBuf};
+
+fn sim_log() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sim2d/sim2d.clf")
+}
+
+fn run(name: &str, relations: bool, matching: Option<Matching>) -> RunResult {
+    RunResult {
+        name: name.into(),
+        kind: "test".into(),
+        scans: 1988,
+        scans_processed: 1500,
+        particles: 50,
+        relations: relations.then_some(RelationsReport {
+            n: 1172,
+            trans_mean_m: 0.0512,
+            trans_std_m: 0.0401,
+            rot_mean_deg: 0.734,
+            rot_std_deg: 0.5,
+        }),
+        odometry_relations: None,
+        ate_rmse_m: matching.map(|_| 0.25),
+        odometry_ate_rmse_m: matching.map(|_| 1.5),
+        matching,
+        wall_time_s: 212.0,
+        data_duration_s: Some(424.0),
+        peak_memory_mib: Some(300.0),
+        map_memory_mib: 120.4,
+        map_image: Some("results/x-map.png".into()),
+        trajectory_plot: None,
+        note: None,
+    }
+}
+
+/// Splits a Markdown table row into its cells (honouring `\|` escapes).
+fn cells(row: &str) -> Vec<String> {
+    let inner = row
+        .strip_prefix('|')
+        .and_then(|r| r.strip_suffix('|'))
+        .unwrap_or_else(|| panic!("row not delimited by pipes: {row}"));
+    let mut out = vec![String::new()];
+    let mut chars = inner.chars().peekable();
+    while let Some(c) = chars.next() {
+        match c {
+            '\\' if chars.peek() == Some(&'|') => {
+                out.last_mut().unwrap().push('|');
+                chars.next();
+            }
+            '|' => out.push(String::new()),
+            _ => out.last_mut().unwrap().push(c),
+        }
+    }
+    out.into_iter().map(|c| c.trim().to_string()).collect()
+}
+
+#[test]
+fn table_is_well_formed_markdown() {
+    let runs = [
+        run("mit-csail", true, None),
+        run("fr|079", false, Some(Matching::Time)),
+        run("csail-corrected", false, Some(Matching::ScanIndex)),
+    ];
+    let table = results_table(&runs);
+    let lines: Vec<&str> = table.lines().collect();
+    assert_eq!(lines.len(), 2 + runs.len(), "{table}");
+    let header = cells(lines[0]);
+    assert_eq!(header, RESULT_COLUMNS.map(String::from).to_vec());
+    assert!(cells(lines[1]).iter().all(|c| c == "---"));
+    for l in &lines[2..] {
+        assert_eq!(cells(l).len(), RESULT_COLUMNS.len(), "{l}");
+    }
+    let col = |name: &str| RESULT_COLUMNS.iter().position(|c| *c == name).unwrap();
+    let csail = cells(lines[2]);
+    assert_eq!(csail[col("relations trans m")], "0.051 ± 0.040");
+    assert_eq!(csail[col("relations rot °")], "0.73 ± 0.50");
+    assert_eq!(csail[col("ATE RMSE m")], "–");
+    assert_eq!(csail[col("real-time factor")], "2.00");
+    assert_eq!(csail[col("map")], "[map](results/x-map.png)");
+    // A pipe in a name is escaped, not a new column.
+    let fr = cells(lines[3]);
+    assert_eq!(fr[0], "fr|079");
+    assert_eq!(fr[col("ATE RMSE m")], "0.250");
+    assert_eq!(fr[col("odometry ATE RMSE m")], "1.500");
+    assert_eq!(cells(lines[4])[col("ATE RMSE m")], "0.250 (by index)");
+}
+
+#[test]
+fn plot_has_expected_size_and_draws_the_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("p.png");
+    let mut plot = Plot::new(320, 240);
+    plot.series.push(Series {
+        label: "diagonal".into(),
+        points: vec![[0.0, 0.0], [10.0, 5.0]],
+        color: PALETTE[1],
+        markers: false,
+    });
+    plot.write_png(&path).unwrap();
+    let img = image::open(&path).unwrap().to_rgb8();
+    assert_eq!(img.dimensions(), (320, 240));
+    let frame = plot.frame().unwrap();
+    // Points along the segment are drawn in the series colour.
+    for s in [0.1, 0.5, 0.9] {
+        let p = frame.to_pixel([10.0 * s, 5.0 * s]);
+        let (x, y) = (p[0].round() as u32, p[1].round() as u32);
+        assert_eq!(img.get_pixel(x, y).0, PALETTE[1], "at {s}: ({x}, {y})");
+    }
+    // Far from the line, inside the plot, is background or grid, never the line.
+    let off = frame.to_pixel([8.0, 1.0]);
+    assert_ne!(img.get_pixel(off[0] as u32, off[1] as u32).0, PALETTE[1]);
+    // Corners are background; something (axes, labels) is drawn.
+    assert_eq!(img.get_pixel(0, 0).0, BACKGROUND);
+    let drawn = img.pixels().filter(|p| p.0 != BACKGROUND).count();
+    assert!(drawn > 500, "{drawn}");
+}
+
+#[test]
+fn plot_without_data_is_an_error() {
+    let mut plot = Plot::new(320, 240);
+    plot.series.push(Series {
+        label: "empty".into(),
+        points: vec![[f64::NAN, 1.0]],
+        color: PALETTE[0],
+        markers: true,
+    });
+    assert!(plot.render().is_err());
+    assert!(Plot::new(20, 20).render().is_err());
+}
+
+#[test]
+fn truncated_log_keeps_the_first_scans() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("cut.clf");
+    assert_eq!(truncate_log(&sim_log(), &out, 25).unwrap(), 25);
+    let (odo, increasing) = odometry_trajectory(&out).unwrap();
+    let (all, _) = odometry_trajectory(&sim_log()).unwrap();
+    assert!(increasing);
+    assert_eq!(odo.len(), 25);
+    assert_eq!(odo[..], all[..25]);
+}
+
+#[test]
+fn prepared_log_applies_the_motion_gate() {
+    let cfg = Config::default();
+    let log = prepare_log(&sim_log(), &cfg, 30).unwrap();
+    assert_eq!(log.steps.len(), 30);
+    for s in &log.steps {
+        let moved = s.delta.translation.vector.norm() >= cfg.filter.min_translation
+            || s.delta.rotation.angle().abs() >= cfg.filter.min_rotation;
+        assert!(moved, "scan {} passed the gate without moving", s.index);
+        assert!(s.scan.beams.len() <= cfg.laser.max_beams);
+    }
+    assert!(log.steps.windows(2).all(|w| w[0].index < w[1].index));
+    let filter = log.warm_filter(7, 3).unwrap();
+    assert_eq!(filter.particles().len(), 7);
+    assert_eq!(filter.best_trajectory().len(), 4);
+    assert!(log.warm_filter(7, 31).is_err());
+}
+
+/// `bench accuracy --quick --only sim2d` end to end, with few particles so
+/// that it stays well under a minute.
+#[test]
+fn quick_accuracy_on_the_simulator() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = Config::default();
+    cfg.filter.particles = 10;
+    let mut opts = AccuracyOptions::new(cfg);
+    opts.quick = true;
+    opts.only = vec!["sim2d".into()];
+    opts.out = dir.path().join("out");
+    opts.docs = dir.path().join("docs");
+    let report = run_accuracy(&opts).unwrap();
+    assert_eq!(report.runs.len(), 1, "{:?}", report.skipped);
+    let r = &report.runs[0];
+    assert_eq!(r.scans, dpslam::bench::accuracy::QUICK_SCANS);
+    assert_eq!(r.particles, 10);
+    assert_eq!(r.matching, Some(Matching::Time));
+    let ate = r.ate_rmse_m.unwrap();
+    let odo = r.odometry_ate_rmse_m.unwrap();
+    assert!(ate.is_finite() && ate >= 0.0 && odo.is_finite());
+    assert!(r.data_duration_s.unwrap() > 0.0 && r.wall_time_s > 0.0);
+    let md = std::fs::read_to_string(opts.docs.join("RESULTS.md")).unwrap();
+    assert!(md.contains("| sim2d |"), "{md}");
+    assert!(md.contains("Quick run"));
+    for f in ["results/sim2d-map.png", "results/sim2d-trajectory.png"] {
+        let img = image::open(opts.docs.join(f)).unwrap();
+        assert!(
+            img.width() > 0 && img.width() <= 800 && img.height() <= 800,
+            "{f}"
+        );
+    }
+    assert!(opts.out.join("sim2d/run/trajectory.tum").is_file());
+    assert!(opts.out.join("results.json").is_file());
+}

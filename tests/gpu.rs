@@ -1,0 +1,259 @@
+//! The GPU scorer against the CPU reference, on Mesa lavapipe (software
+//! Vulkan: `apt-get install -y mesa-vulkan-drivers libvulkan1`) or any GPU.
+//!
+//! Per candidate, the summed beam log-likelihoods must agree within 1e-3
+//! (absolute) on real DP-maps built by the filter: several ancestry nodes,
+//! unknown cells, "no return" beams, beams leaving the mapped area, quick
+//! and full traces, all beams and strided subsets.
+//!
+//! The no-adapter error is tested by asking for backends this build does not
+//! compile in (`Backends::GL` in-process, `WGPU_BACKEND=gl` for the binary).
+//!
+//! The end-to-end test (`--ignored`) maps the first 300 scans of
+//! mit-csail with `--backend gpu` and `--backend cpu` and compares the
+//! trajectories.
+#![cfg(feature = "gpu")]
+
+use dpslam::backend::bench::{Fixture, FixtureSpec, fixture2d, fixture3d};
+use dpslam::backend::{Backend, make_scorer};
+use dpslam::geometry::{Pose, Pose2, Pose3};
+use dpslam::gpu::GpuScorer;
+use dpslam::laser_model::Trace;
+use dpslam::scorer::{BeamSubset, CpuScorer, Scorer};
+
+const TOLERANCE: f64 = 1e-3;
+
+fn gpu<const D: usize>() -> GpuScorer<D> {
+    GpuScorer::new().unwrap_or_else(|e| panic!("{e} (install mesa-vulkan-drivers for lavapipe)"))
+}
+
+/// Scores `fx` on both backends; returns the largest per-candidate difference.
+fn compare<const D: usize, P: Pose<D>>(
+    fx: &Fixture<D, P>,
+    g: &GpuScorer<D>,
+    subset: BeamSubset,
+    trace: Trace,
+) -> f64 {
+    let ctx = fx.context();
+    let cpu = CpuScorer::<D>::new().score(&ctx, &fx.candidates, subset, trace);
+    let gpu = g
+        .try_score(&ctx, &fx.candidates, subset, trace)
+        .expect("GPU scoring");
+    assert_eq!(cpu.len(), gpu.len());
+    let mut worst = 0.0f64;
+    for (i, (c, g)) in cpu.iter().zip(&gpu).enumerate() {
+        assert!(
+            c.is_finite() && g.is_finite(),
+            "candidate {i}: cpu {c}, gpu {g}"
+        );
+        let d = (c - g).abs();
+        assert!(
+            d <= TOLERANCE,
+            "candidate {i} ({trace:?}, {subset:?}): cpu {c}, gpu {g}, diff {d}"
+        );
+        worst = worst.max(d);
+    }
+    // The comparison means something only if the scores differ between candidates.
+    let (lo, hi) = cpu
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
+    assert!(hi - lo > 1.0, "scores barely vary ({lo}..{hi})");
+    worst
+}
+
+fn check_fixture<const D: usize, P: Pose<D>>(fx: &Fixture<D, P>, g: &GpuScorer<D>) {
+    let nodes: std::collections::BTreeSet<_> = fx.candidates.iter().map(|c| c.node).collect();
+    assert!(nodes.len() >= 2, "one map view only");
+    assert!(
+        fx.scan.beams.iter().any(|b| b.no_return),
+        "no max-range beam"
+    );
+    for trace in [Trace::Full, Trace::Quick] {
+        for subset in [
+            BeamSubset::ALL,
+            BeamSubset {
+                first: 2,
+                stride: 9,
+            },
+        ] {
+            let d = compare(fx, g, subset, trace);
+            eprintln!("{D}-D {trace:?} {subset:?}: max |gpu - cpu| = {d:.2e}");
+        }
+    }
+}
+
+#[test]
+fn gpu_matches_cpu_in_2d() {
+    let mut fx = fixture2d(&FixtureSpec {
+        particles: 6,
+        steps: 4,
+        candidates: 70,
+        beams: 181,
+        seed: 11,
+    });
+    let g = gpu::<2>();
+    check_fixture(&fx, &g);
+    // One map upload serves every later call on the same map version.
+    let ctx = fx.context();
+    g.try_score(&ctx, &fx.candidates, BeamSubset::ALL, Trace::Full)
+        .unwrap();
+    assert!(!g.last_call().map_uploaded);
+    // A filter step changes the map and the numbering: the next call must see both.
+    let delta = Pose2::new(nalgebra::Vector2::new(0.25, 0.02), 0.0);
+    let scan = fx.scan.clone();
+    fx.filter.step(&delta, &scan, 99);
+    let particles = fx.filter.particles().to_vec();
+    for (i, c) in fx.candidates.iter_mut().enumerate() {
+        c.node = particles[i % particles.len()].node;
+    }
+    compare(&fx, &g, BeamSubset::ALL, Trace::Full);
+    assert!(g.last_call().map_uploaded);
+}
+
+#[test]
+fn gpu_matches_cpu_in_3d() {
+    let fx = fixture3d(&FixtureSpec {
+        particles: 4,
+        steps: 3,
+        candidates: 30,
+        beams: 400,
+        seed: 5,
+    });
+    check_fixture(&fx, &gpu::<3>());
+}
+
+#[test]
+fn trait_path_equals_try_score_and_candidates_far_outside_score_finitely() {
+    let fx = fixture2d(&FixtureSpec {
+        particles: 3,
+        steps: 2,
+        candidates: 14,
+        beams: 90,
+        seed: 2,
+    });
+    let g = gpu::<2>();
+    let ctx = fx.context();
+    let a = Scorer::<2, Pose2>::score(&g, &ctx, &fx.candidates, BeamSubset::ALL, Trace::Full);
+    let b = g
+        .try_score(&ctx, &fx.candidates, BeamSubset::ALL, Trace::Full)
+        .unwrap();
+    assert_eq!(a, b);
+    // Candidates 6 and 13 were moved 6 m ahead: beams cross unmapped cells.
+    // Everything beyond the map is unknown: still finite, and worse than in the map.
+    assert!(a[6].is_finite() && a[6] < a[5]);
+    // An empty call is a no-op.
+    assert!(
+        g.try_score(&ctx, &[], BeamSubset::ALL, Trace::Full)
+            .unwrap()
+            .is_empty()
+    );
+}
+
+#[test]
+fn make_scorer_gpu_opens_a_device_and_auto_prefers_it() {
+    let (s, used) = make_scorer::<3, Pose3>(Backend::Gpu).expect("lavapipe present");
+    assert_eq!((s.name(), used), ("gpu", "gpu"));
+    let (_, used) = make_scorer::<2, Pose2>(Backend::Auto).unwrap();
+    assert_eq!(used, "gpu");
+}
+
+#[test]
+fn no_adapter_is_a_clear_error() {
+    // This build compiles in Vulkan only, so GL finds no adapter, as a
+    // machine without a Vulkan driver would.
+    let e = GpuScorer::<2>::with_backends(wgpu::Backends::GL)
+        .err()
+        .expect("no GL adapter in a Vulkan-only build");
+    assert!(matches!(e, dpslam::Error::Gpu(_)));
+    let msg = e.to_string();
+    assert!(
+        msg.contains("no Vulkan adapter") && msg.contains("--backend cpu"),
+        "{msg}"
+    );
+}
+
+#[test]
+fn map2d_with_backend_gpu_and_no_adapter_fails_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_dpslam"))
+        .args(["map2d", "--backend", "gpu", "--out"])
+        .arg(dir.path().join("run"))
+        .env("WGPU_BACKEND", "gl")
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("no Vulkan adapter") && err.contains("--backend cpu"),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(
+        !dir.path().join("run").exists(),
+        "a failed run wrote output"
+    );
+}
+
+/// Reads `trajectory.tum` rows as (t, x, y).
+fn trajectory(path: &std::path::Path) -> Vec<(f64, f64, f64)> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| {
+            let v: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
+            (v[0], v[1], v[2])
+        })
+        .collect()
+}
+
+/// About 5 minutes on 2 cores with lavapipe: run with `--ignored`.
+#[test]
+#[ignore]
+fn map2d_gpu_and_cpu_trajectories_agree_on_mit_csail_prefix() {
+    let src = std::path::Path::new("/work/shared/datasets/carmen/mit-csail/mit-csail.clf");
+    let Ok(text) = std::fs::read_to_string(src) else {
+        eprintln!("skipped: {} not found", src.display());
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("prefix.clf");
+    let mut kept = String::new();
+    let mut scans = 0;
+    for line in text.lines() {
+        let is_scan = line.starts_with("FLASER") || line.starts_with("ROBOTLASER1");
+        if is_scan {
+            if scans == 300 {
+                break;
+            }
+            scans += 1;
+        }
+        kept.push_str(line);
+        kept.push('\n');
+    }
+    std::fs::write(&log, kept).unwrap();
+    let run = |backend: &str| {
+        let out = dir.path().join(backend);
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_dpslam"))
+            .args(["map2d", "--seed", "7", "--backend", backend, "--out"])
+            .arg(&out)
+            .arg(&log)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        trajectory(&out.join("trajectory.tum"))
+    };
+    let cpu = run("cpu");
+    let gpu = run("gpu");
+    assert_eq!(cpu.len(), 300);
+    assert_eq!(cpu.len(), gpu.len());
+    let worst = cpu
+        .iter()
+        .zip(&gpu)
+        .map(|(a, b)| (a.1 - b.1).hypot(a.2 - b.2))
+        .fold(0.0, f64::max);
+    eprintln!("max position difference gpu vs cpu: {worst:.4} m");
+    assert!(worst <= 0.01, "max position difference {worst} m");
+}

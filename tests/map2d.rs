@@ -1,0 +1,109 @@
+//! End-to-end 2-D mapping runs on short logs: outputs, accuracy against the
+//! simulator's truth, determinism across thread counts, and bad input.
+
+use dpslam::config::Config;
+use dpslam::eval::ate::{AteOptions, evaluate_ate};
+use dpslam::io::tum::read_tum;
+use dpslam::pipeline::map2d::run_map2d;
+use std::path::{Path, PathBuf};
+
+const SIM_LOG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/sim2d/sim2d.clf");
+const SIM_TRUTH: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/sim2d/truth.tum");
+const LOOP5: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/datasets/dpslam/loop5.log");
+
+/// The first `n` lines of a text file, written to `dir`.
+fn prefix(src: &str, n: usize, dir: &Path, name: &str) -> PathBuf {
+    let text = std::fs::read_to_string(src).unwrap();
+    let head: Vec<&str> = text.lines().take(n).collect();
+    let p = dir.join(name);
+    std::fs::write(&p, head.join("\n") + "\n").unwrap();
+    p
+}
+
+fn small_config() -> Config {
+    let mut c = Config::default();
+    c.filter.particles = 20;
+    c
+}
+
+#[test]
+fn simulated_prefix_maps_with_all_outputs_and_small_ate() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = prefix(SIM_LOG, 250, dir.path(), "sim.clf");
+    let out = dir.path().join("run");
+    let s = run_map2d(&log, &out, &small_config()).unwrap();
+    for f in ["map.png", "map.pgm", "map.yaml", "trajectory.tum", "run.json", "config.toml"] {
+        assert!(out.join(f).metadata().unwrap().len() > 0, "{f} missing or empty");
+    }
+    let traj = read_tum(&out.join("trajectory.tum")).unwrap();
+    assert_eq!(traj.len(), s.scans, "one trajectory line per input scan");
+    assert!(s.scans_processed > 50 && s.scans_processed <= s.scans);
+    // time stamps are the log's, in input order
+    assert!(traj.windows(2).all(|w| w[1].t > w[0].t));
+    let truth = read_tum(Path::new(SIM_TRUTH)).unwrap();
+    let ate = evaluate_ate(&truth, &traj, &AteOptions::default()).unwrap();
+    assert_eq!(ate.n, traj.len());
+    assert!(ate.rmse_m < 0.10, "ATE {} m on the simulated prefix", ate.rmse_m);
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(json["particles"], 20);
+    assert!(json["wall_time_s"].as_f64().unwrap() > 0.0);
+    // the echoed configuration reproduces the run's settings
+    let echoed = Config::from_toml_file(&out.join("config.toml")).unwrap();
+    assert_eq!(echoed, small_config());
+}
+
+#[test]
+fn same_seed_same_trajectory_whatever_the_thread_count() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = prefix(SIM_LOG, 120, dir.path(), "sim.clf");
+    let run = |threads: usize, seed: u64| {
+        let out = dir.path().join(format!("t{threads}s{seed}"));
+        let mut cfg = small_config();
+        cfg.seed = seed;
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| run_map2d(&log, &out, &cfg).unwrap());
+        std::fs::read(out.join("trajectory.tum")).unwrap()
+    };
+    let one = run(1, 7);
+    assert_eq!(one, run(3, 7), "1 vs 3 threads differ");
+    assert_ne!(one, run(1, 8), "a different seed should give a different trajectory");
+}
+
+#[test]
+fn dpslam_format_log_runs_with_the_release_laser_offset() {
+    let dir = tempfile::tempdir().unwrap();
+    // 60 Odometry/Laser pairs of the release's sample log.
+    let log = prefix(LOOP5, 120, dir.path(), "loop5-head.log");
+    let out = dir.path().join("run");
+    let s = run_map2d(&log, &out, &small_config()).unwrap();
+    assert_eq!(s.format, "DpSlam");
+    assert_eq!(s.scans, 60);
+    let traj = read_tum(&out.join("trajectory.tum")).unwrap();
+    // no time stamps: t is the scan index
+    assert_eq!(traj[0].t, 0.0);
+    assert_eq!(traj[59].t, 59.0);
+}
+
+#[test]
+fn bad_input_fails_with_file_and_line_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = prefix(SIM_LOG, 40, dir.path(), "sim.clf");
+    let mut text = std::fs::read_to_string(&log).unwrap();
+    text.push_str("FLASER 181 1.0 2.0\n");
+    std::fs::write(&log, text).unwrap();
+    let out = dir.path().join("run");
+    let e = run_map2d(&log, &out, &small_config()).unwrap_err().to_string();
+    assert!(e.contains("sim.clf") && e.contains("line 41"), "{e}");
+    assert!(!out.exists(), "a failed run must not leave an output folder");
+    let missing = dir.path().join("nope.clf");
+    let e = run_map2d(&missing, &out, &small_config()).unwrap_err().to_string();
+    assert!(e.contains("nope.clf"), "{e}");
+    let empty = dir.path().join("empty.clf");
+    std::fs::write(&empty, "").unwrap();
+    assert!(run_map2d(&empty, &out, &small_config()).is_err());
+    assert!(!out.exists());
+}
