@@ -92,18 +92,18 @@ impl Default for Map3dConfig {
             beam_voxel: 0.2,
             variance: 0.04,
             occupied_density: 0.5,
-            trans_std_per_m: 0.01,
+            trans_std_per_m: 0.005,
             trans_std_per_rad: 0.02,
-            min_trans_std: 0.01,
+            min_trans_std: 0.005,
             rot_std_per_m: 0.001,
             rot_std_per_rad: 0.01,
             min_rot_std: 0.002,
             local_map_sweeps: 10,
-            icp_voxel: 0.1,
-            icp_levels: 4,
+            icp_voxel: 0.2,
+            icp_levels: 3,
             icp_max_distance: 3.0,
             icp_iterations: 30,
-            icp_max_points: 5000,
+            icp_max_points: 50000,
             points_voxel: 0.1,
         }
     }
@@ -336,7 +336,7 @@ impl Config {
         if !(l.beam_floor > 0.0 && l.beam_floor < 1.0) {
             return bad("laser.beam_floor must be in (0, 1)");
         }
-        if !(l.prior_stop_every > 0.0) {
+        if l.prior_stop_every.is_nan() || l.prior_stop_every <= 0.0 {
             return bad("laser.prior_stop_every must be positive");
         }
         Ok(())

@@ -168,7 +168,7 @@ mod tests_6d {
         let prev = Pose3::new(Vector3::new(1.0, 2.0, 0.5), Vector3::new(0.0, 0.0, 0.4));
         let delta = Pose3::new(Vector3::new(2.0, 0.0, 0.0), Vector3::new(0.0, 0.0, 0.1));
         let (st, sr) = model.stds(&delta);
-        assert!((st - (0.01 * 2.0 + 0.02 * 0.1)).abs() < 1e-12);
+        assert!((st - (0.005 * 2.0 + 0.02 * 0.1)).abs() < 1e-12);
         assert!((sr - (0.001 * 2.0 + 0.01 * 0.1)).abs() < 1e-12);
         let expect = prev * delta;
         let mut rng = Pcg64::seed_from_u64(9);
@@ -196,6 +196,6 @@ mod tests_6d {
     fn floors_apply_when_still() {
         let model = Gaussian6dModel::from_config(&crate::config::Map3dConfig::default());
         let (st, sr) = model.stds(&Pose3::identity());
-        assert_eq!((st, sr), (0.01, 0.002));
+        assert_eq!((st, sr), (0.005, 0.002));
     }
 }

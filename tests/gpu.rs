@@ -234,19 +234,21 @@ fn map2d_gpu_and_cpu_trajectories_agree_on_mit_csail_prefix() {
         kept.push('\n');
     }
     std::fs::write(&log, kept).unwrap();
-    let run = |backend: &str| {
-        let out = dir.path().join(backend);
-        let o = std::process::Command::new(env!("CARGO_BIN_EXE_dpslam"))
-            .args(["map2d", "--seed", "7", "--backend", backend, "--out"])
-            .arg(&out)
-            .arg(&log)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // In-process, not through the binary: a shared target folder may hold a
+    // `dpslam` built without the feature.
+    let cfg = dpslam::config::Config {
+        seed: 7,
+        ..Default::default()
+    };
+    let run = |backend: Backend| {
+        let out = dir.path().join(backend.to_string());
+        let t = std::time::Instant::now();
+        dpslam::pipeline::map2d::run_map2d_with(&log, &out, &cfg, backend).unwrap();
+        eprintln!("{backend}: {:.1} s", t.elapsed().as_secs_f64());
         trajectory(&out.join("trajectory.tum"))
     };
-    let cpu = run("cpu");
-    let gpu = run("gpu");
+    let cpu = run(Backend::Cpu);
+    let gpu = run(Backend::Gpu);
     assert_eq!(cpu.len(), 300);
     assert_eq!(cpu.len(), gpu.len());
     let worst = cpu

@@ -26,7 +26,7 @@ use crate::io::tum::{Stamped, read_tum};
 use crate::pipeline::map2d::run_map2d;
 use crate::sim::perturb::{NoiseModel, perturb_log};
 use crate::{Error, Result};
-use nalgebra::{Isometry3, Vector3};
+use nalgebra::{Isometry3, Point3, Vector3};
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -307,7 +307,8 @@ fn aligned_xy(poses: &[Stamped], target: &[Stamped], max_dt: f64) -> Vec<[f64; 2
     poses
         .iter()
         .map(|p| {
-            let v = s * p.pose.translation.vector;
+            // A point, not a vector: the alignment's translation must apply.
+            let v = s * Point3::from(p.pose.translation.vector);
             [v.x, v.y]
         })
         .collect()
@@ -471,9 +472,16 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
         markers: false,
     });
     if let Some(t) = &truth {
+        // Only the span that was mapped (a `--quick` subset maps part of the log).
+        let (first, last) = (estimate[0].t, estimate[estimate.len() - 1].t);
+        let span: Vec<Stamped> = t
+            .iter()
+            .filter(|p| p.t >= first - dt && p.t <= last + dt)
+            .copied()
+            .collect();
         plot.series.push(Series {
             label: "truth".into(),
-            points: xy(t),
+            points: xy(&span),
             color: PALETTE[1],
             markers: false,
         });
@@ -586,4 +594,57 @@ pub fn run_accuracy(opts: &AccuracyOptions) -> Result<AccuracyReport> {
         results_markdown(&report).as_bytes(),
     )?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn alignment_moves_points_onto_the_target() {
+        let target: Vec<Stamped> = (0..20)
+            .map(|i| {
+                Stamped::planar(
+                    i as f64,
+                    i as f64 * 0.5,
+                    (i as f64 * 0.3).sin(),
+                    0.1 * i as f64,
+                )
+            })
+            .collect();
+        // The same path in a frame rotated by 1 rad and shifted far away.
+        let g = crate::geometry::pose2(576.0, -40.0, 1.0);
+        let moved: Vec<Stamped> = target
+            .iter()
+            .map(|p| {
+                let (x, y, th) = xyt(&(g * crate::geometry::pose2(
+                    p.pose.translation.x,
+                    p.pose.translation.y,
+                    p.pose.rotation.angle(),
+                )));
+                Stamped::planar(p.t, x, y, th)
+            })
+            .collect();
+        let aligned = aligned_xy(&moved, &target, 0.01);
+        for (a, t) in aligned.iter().zip(xy(&target)) {
+            assert!(
+                (a[0] - t[0]).abs() < 1e-6 && (a[1] - t[1]).abs() < 1e-6,
+                "{a:?} vs {t:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn relations_outside_the_subset_are_dropped() {
+        let traj: Vec<Stamped> = (0..5)
+            .map(|i| Stamped::planar(i as f64, 0.0, 0.0, 0.0))
+            .collect();
+        let rels = vec![
+            Relation::new(0.0, 4.0, Isometry3::identity(), 1),
+            Relation::new(1.0, 4.0005, Isometry3::identity(), 2),
+            Relation::new(3.0, 5.0, Isometry3::identity(), 3),
+        ];
+        let kept = relations_within(&rels, &traj);
+        assert_eq!(kept.iter().map(|r| r.line).collect::<Vec<_>>(), vec![1, 2]);
+    }
 }

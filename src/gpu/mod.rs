@@ -445,8 +445,8 @@ impl State {
                 )),
             };
             let mut dir = [0.0f32; 4];
-            for i in 0..D {
-                dir[i] = b.dir[i] as f32;
+            for (d, v) in dir.iter_mut().zip(b.dir) {
+                *d = v as f32;
             }
             dir[3] = (b.range / cell) as f32;
             let span = match span {
