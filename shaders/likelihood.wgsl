@@ -1,4 +1,4 @@
-// Beam log-likelihoods of the DP-SLAM penetration model, one invocation per
+// Beam likelihoods of the DP-SLAM penetration model, one invocation per
 // (candidate, beam). A port of `LaserModel::beam_log_likelihood` (src/laser_model.rs)
 // over the flattened DP-map of `src/gpu/flatten.rs`.
 //
@@ -19,12 +19,10 @@ struct Params {
     max_error: f32,
     // Prior stop density of unseen cells, stops per cell length.
     prior: f32,
-    // ln of the beam-likelihood floor.
-    ln_floor: f32,
     dim: u32,
+    _p3: u32,
     _p0: u32,
     _p1: u32,
-    _p2: u32,
 }
 
 struct Cand {
@@ -56,7 +54,8 @@ struct Beam {
 @group(0) @binding(5) var<storage, read> entries: array<vec2<u32>>;
 // Per node id: (enter, exit) of the depth-first numbering.
 @group(0) @binding(6) var<storage, read> numbering: array<vec2<u32>>;
-@group(0) @binding(7) var<storage, read_write> out_ll: array<f32>;
+// Beam likelihoods, before the floor.
+@group(0) @binding(7) var<storage, read_write> out_l: array<f32>;
 
 // Stands in for +inf (naga rejects infinite literals); no trace is this long.
 const BIG: f32 = 1.0e30;
@@ -104,10 +103,13 @@ fn resolve(bi: i32, local: u32, leaf: u32) -> f32 {
     return rho;
 }
 
-// 1 − exp(−x), accurate for small x (f32 has no expm1).
+// 1 − exp(−x) to ~1e-7 relative (WGSL has no expm1). `1.0 − exp(−x)` alone
+// loses 6e-8 absolute, i.e. 2e-5 relative for an unseen 2-D cell (x ≈ 0.004),
+// which biases every beam's sum the same way. Below 0.1 the Taylor series to
+// x⁶ is exact to x⁶/720 relative.
 fn stop_prob(x: f32) -> f32 {
-    if (x < 1.0e-3) {
-        return x * (1.0 - x * (0.5 - x * (1.0 / 6.0)));
+    if (x < 0.1) {
+        return x * (1.0 - x * 0.5 * (1.0 - x * (1.0 / 3.0) * (1.0 - x * 0.25 * (1.0 - x * 0.2 * (1.0 - x * (1.0 / 6.0))))));
     }
     return 1.0 - exp(-x);
 }
@@ -125,7 +127,8 @@ fn main(
     let c = cands[idx / P.n_beams];
     let b = beams[idx % P.n_beams];
     if (b.span.w > 0.5) {
-        out_ll[idx] = 0.0;
+        // Not scored: likelihood 1, log 0.
+        out_l[idx] = 1.0;
         return;
     }
     let ds = b.dir.xyz;
@@ -218,9 +221,7 @@ fn main(
     } else if (miss > 0.0) {
         l = eval / miss;
     }
-    var ll = P.ln_floor;
-    if (l > 0.0) {
-        ll = max(log(l), P.ln_floor);
-    }
-    out_ll[idx] = ll;
+    // The floor and the log are applied on the host in f64: shader `log`
+    // may be off by a few ulp, which biases sums over thousands of beams.
+    out_l[idx] = l;
 }

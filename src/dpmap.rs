@@ -333,6 +333,14 @@ impl<const D: usize> DpMap<D> {
         }
     }
 
+    /// Histogram of list lengths: `counts[i]` = cells with `i` entries (last bucket: ≥).
+    pub fn list_length_histogram(&self, buckets: usize) -> Vec<usize> {
+        let mut h = vec![0; buckets.max(1)];
+        let last = h.len() - 1;
+        self.for_each_cell(|_, l| h[l.len().min(last)] += 1);
+        h
+    }
+
     /// Inclusive bounds `(min, max)` of the allocated cells, or `None` if empty.
     pub fn bounds(&self) -> Option<(CellKey<D>, CellKey<D>)> {
         let mut lo = [i32::MAX; D];
@@ -653,15 +661,5 @@ mod tests {
         }
         assert!(t.len() <= 2 * n);
         assert!(longest > DIRECT_SCAN_MAX, "the cache path was not exercised");
-    }
-}
-
-impl<const D: usize> DpMap<D> {
-    /// Histogram of list lengths: `counts[i]` = cells with `i` entries (last bucket: ≥).
-    pub fn list_length_histogram(&self, buckets: usize) -> Vec<usize> {
-        let mut h = vec![0; buckets.max(1)];
-        let last = h.len() - 1;
-        self.for_each_cell(|_, l| h[l.len().min(last)] += 1);
-        h
     }
 }

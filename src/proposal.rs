@@ -85,7 +85,10 @@ fn voxel_of(p: &Vector3<f64>, size: f64) -> [i32; 3] {
 
 /// Centroid down-sampling: one point per voxel of edge `size` (m), the mean
 /// of the points in it, in the order the voxels are first seen.
-pub fn voxel_downsample(points: impl IntoIterator<Item = Vector3<f64>>, size: f64) -> Vec<Vector3<f64>> {
+pub fn voxel_downsample(
+    points: impl IntoIterator<Item = Vector3<f64>>,
+    size: f64,
+) -> Vec<Vector3<f64>> {
     let mut slot: FxHashMap<[i32; 3], usize> = FxHashMap::default();
     let mut acc: Vec<(Vector3<f64>, u32)> = Vec::new();
     for p in points {
@@ -221,7 +224,9 @@ impl LocalMap {
                 let pts = voxel_downsample(
                     clouds
                         .iter()
-                        .flat_map(|(pose, pts)| pts.iter().map(move |p| pose * nalgebra::Point3::from(*p)))
+                        .flat_map(|(pose, pts)| {
+                            pts.iter().map(move |p| pose * nalgebra::Point3::from(*p))
+                        })
                         .map(|p| p.coords),
                     voxel,
                 );
@@ -267,12 +272,20 @@ fn left_update(pose: &Pose3, xi: &Vector6<f64>) -> Pose3 {
 /// Aligns `source` (sensor-frame points, m) to `map` starting from `initial`
 /// (sensor pose in the map frame). Returns `None` when a level finds too few
 /// correspondences to be trusted (the caller keeps its prior then).
-pub fn align(map: &LocalMap, source: &[Vector3<f64>], initial: &Pose3, params: &ProposalParams) -> Option<Alignment> {
+pub fn align(
+    map: &LocalMap,
+    source: &[Vector3<f64>],
+    initial: &Pose3,
+    params: &ProposalParams,
+) -> Option<Alignment> {
     let mut pose = *initial;
     let mut iterations = 0;
     let mut last = (0usize, 0.0f64);
     for level in &map.levels {
-        let src = thin(&voxel_downsample(source.iter().copied(), level.voxel), params.max_points);
+        let src = thin(
+            &voxel_downsample(source.iter().copied(), level.voxel),
+            params.max_points,
+        );
         // Residual scale of the robust (Cauchy) weight: wide at the first
         // iterations of a coarse level, down to the level's voxel.
         for it in 0..params.iterations {
@@ -428,7 +441,11 @@ mod tests {
             for a in 0..40 {
                 let t = a as f64 / 40.0 * std::f64::consts::TAU;
                 for z in steps(lz) {
-                    add(Vector3::new(cx + 0.4 * t.cos(), cy + 0.4 * t.sin(), z - 1.0));
+                    add(Vector3::new(
+                        cx + 0.4 * t.cos(),
+                        cy + 0.4 * t.sin(),
+                        z - 1.0,
+                    ));
                 }
             }
         }
@@ -458,9 +475,20 @@ mod tests {
     #[test]
     fn too_few_points_is_no_alignment() {
         let params = ProposalParams::from_config(&Map3dConfig::default());
-        let map = LocalMap::build(&[(Pose3::identity(), &[Vector3::new(1.0, 0.0, 0.0)][..])], &params);
+        let map = LocalMap::build(
+            &[(Pose3::identity(), &[Vector3::new(1.0, 0.0, 0.0)][..])],
+            &params,
+        );
         assert_eq!(map.len(), 1);
-        assert!(align(&map, &[Vector3::new(1.0, 0.0, 0.0)], &Pose3::identity(), &params).is_none());
+        assert!(
+            align(
+                &map,
+                &[Vector3::new(1.0, 0.0, 0.0)],
+                &Pose3::identity(),
+                &params
+            )
+            .is_none()
+        );
     }
 
     #[test]
@@ -477,6 +505,8 @@ mod tests {
     }
 
     fn to_f32(v: &[Vector3<f64>]) -> Vec<[f32; 3]> {
-        v.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect()
+        v.iter()
+            .map(|p| [p.x as f32, p.y as f32, p.z as f32])
+            .collect()
     }
 }

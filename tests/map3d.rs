@@ -23,7 +23,10 @@ fn config(particles: usize) -> Config {
 
 fn read_matrix(path: &Path) -> Pose3 {
     let text = std::fs::read_to_string(path).unwrap();
-    let v: Vec<f64> = text.split_whitespace().map(|s| s.parse().unwrap()).collect();
+    let v: Vec<f64> = text
+        .split_whitespace()
+        .map(|s| s.parse().unwrap())
+        .collect();
     assert_eq!(v.len(), 16);
     let m = Matrix4::from_row_slice(&v);
     let r: Matrix3<f64> = m.fixed_view::<3, 3>(0, 0).into_owned();
@@ -94,7 +97,12 @@ fn kurt3d_with_pose_priors_runs_and_map_parses() {
     // The priors are odometry-level: the run stays near them (within 0.5 m, 5°).
     let priors: Vec<Pose3> = ["scan001.3d", "scan002.3d"]
         .iter()
-        .map(|f| dpslam::io::sweeps::read_sweep(&dir.join(f)).unwrap().prior.unwrap())
+        .map(|f| {
+            dpslam::io::sweeps::read_sweep(&dir.join(f))
+                .unwrap()
+                .prior
+                .unwrap()
+        })
         .collect();
     for (t, p) in traj[1..].iter().zip(&priors) {
         let (et, er) = error(p, &t.pose);
@@ -150,7 +158,9 @@ fn synthetic(dir: &Path, truth: &[Pose3], bad: usize, offset: &Pose3) -> PathBuf
     let sweeps = dir.join("sweeps");
     std::fs::create_dir_all(&sweeps).unwrap();
     for (i, p) in truth.iter().enumerate() {
-        let mut f = std::io::BufWriter::new(std::fs::File::create(sweeps.join(format!("s{i:03}.xyz"))).unwrap());
+        let mut f = std::io::BufWriter::new(
+            std::fs::File::create(sweeps.join(format!("s{i:03}.xyz"))).unwrap(),
+        );
         for q in room_sweep(p) {
             writeln!(f, "{:.4} {:.4} {:.4}", q[0], q[1], q[2]).unwrap();
         }
@@ -159,7 +169,10 @@ fn synthetic(dir: &Path, truth: &[Pose3], bad: usize, offset: &Pose3) -> PathBuf
     for (i, p) in truth.iter().enumerate() {
         let p = if i == bad { p * offset } else { *p };
         let v = p.to_tum();
-        tum += &format!("{}.5 {} {} {} {} {} {} {}\n", i, v[0], v[1], v[2], v[3], v[4], v[5], v[6]);
+        tum += &format!(
+            "{}.5 {} {} {} {} {} {} {}\n",
+            i, v[0], v[1], v[2], v[3], v[4], v[5], v[6]
+        );
     }
     let poses = dir.join("prior.tum");
     std::fs::write(&poses, tum).unwrap();
@@ -170,7 +183,10 @@ fn truth_path() -> Vec<Pose3> {
     (0..4)
         .map(|i| {
             let i = i as f64;
-            Pose3::new(Vector3::new(-2.0 + 0.7 * i, 0.2 * i, 0.0), Vector3::new(0.0, 0.0, 0.12 * i))
+            Pose3::new(
+                Vector3::new(-2.0 + 0.7 * i, 0.2 * i, 0.0),
+                Vector3::new(0.0, 0.0, 0.12 * i),
+            )
         })
         .collect()
 }
@@ -182,11 +198,20 @@ fn truth_path() -> Vec<Pose3> {
 fn proposal_recovers_a_prior_off_by_a_metre_and_ten_degrees() {
     let tmp = tempfile::tempdir().unwrap();
     let truth = truth_path();
-    let offset = Pose3::new(Vector3::new(0.9, -0.8, 0.0), Vector3::new(0.0, 0.0, 12f64.to_radians()));
+    let offset = Pose3::new(
+        Vector3::new(0.9, -0.8, 0.0),
+        Vector3::new(0.0, 0.0, 12f64.to_radians()),
+    );
     assert!(offset.translation.vector.norm() >= 1.0);
     let sweeps = synthetic(tmp.path(), &truth, 2, &offset);
     let out = tmp.path().join("run");
-    let s = run_map3d(&sweeps, &out, &config(20), Some(&tmp.path().join("prior.tum"))).unwrap();
+    let s = run_map3d(
+        &sweeps,
+        &out,
+        &config(20),
+        Some(&tmp.path().join("prior.tum")),
+    )
+    .unwrap();
     assert_eq!(s.proposal_fallbacks, 0);
     let traj = read_tum(&out.join("trajectory.tum")).unwrap();
     assert_eq!(traj.len(), truth.len());
@@ -207,15 +232,25 @@ fn same_seed_same_trajectory_with_one_and_two_threads() {
     let mut files = Vec::new();
     for n in [1, 2] {
         let out = tmp.path().join(format!("run{n}"));
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
-        pool.install(|| run_map3d(&sweeps, &out, &config(15), None)).unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .unwrap();
+        pool.install(|| run_map3d(&sweeps, &out, &config(15), None))
+            .unwrap();
         files.push((
             std::fs::read(out.join("trajectory.tum")).unwrap(),
             std::fs::read(out.join("map.ply")).unwrap(),
         ));
     }
-    assert_eq!(files[0].0, files[1].0, "trajectory differs between 1 and 2 threads");
-    assert_eq!(files[0].1, files[1].1, "map differs between 1 and 2 threads");
+    assert_eq!(
+        files[0].0, files[1].0,
+        "trajectory differs between 1 and 2 threads"
+    );
+    assert_eq!(
+        files[0].1, files[1].1,
+        "map differs between 1 and 2 threads"
+    );
 }
 
 /// A pose file whose length does not match the sweeps is an error naming it.
@@ -229,31 +264,8 @@ fn pose_file_with_wrong_length_is_an_error() {
     let e = run_map3d(&sweeps, &tmp.path().join("run"), &config(5), Some(&short))
         .unwrap_err()
         .to_string();
-    assert!(e.contains("short.tum") && e.contains("1 poses for 4 sweeps"), "{e}");
-}
-
-#[test]
-#[ignore]
-fn exp_icp_variants() {
-    use dpslam::proposal::{Proposal, ProposalParams};
-    let dir = datasets().join("fast_gicp");
-    let a = dpslam::io::sweeps::read_sweep(&dir.join("251370668.pcd")).unwrap();
-    let b = dpslam::io::sweeps::read_sweep(&dir.join("251371071.pcd")).unwrap();
-    let reference = read_matrix(&dir.join("relative.txt"));
-    for (voxel, levels, maxp, maxd) in [(0.1, 4, 5000, 3.0), (0.1, 4, 50000, 3.0), (0.2, 3, 50000, 3.0), (0.05, 5, 50000, 3.0), (0.1, 4, 50000, 1.5)] {
-        let mut m = dpslam::config::Map3dConfig::default();
-        m.icp_voxel = voxel;
-        m.icp_levels = levels;
-        m.icp_max_points = maxp;
-        m.icp_max_distance = maxd;
-        let mut p = Proposal::new(ProposalParams::from_config(&m));
-        let pa = p.prepare(&a.points);
-        p.push(0, pa);
-        let pb = p.prepare(&b.points);
-        let t = std::time::Instant::now();
-        let al = p.align(&pb, &Pose3::identity(), |_| Some(Pose3::identity())).unwrap();
-        let (r, pi, y) = al.pose.rotation.euler_angles();
-        let (et, er) = error(&reference, &al.pose);
-        eprintln!("{voxel} {levels} {maxp} {maxd}: {et:.4} m {er:.3} deg  rpy {:.3} {:.3} {:.3} t {:?} in {:.2}s inl {}", r.to_degrees(), pi.to_degrees(), y.to_degrees(), al.pose.translation.vector.as_slice(), t.elapsed().as_secs_f64(), al.inliers);
-    }
+    assert!(
+        e.contains("short.tum") && e.contains("1 poses for 4 sweeps"),
+        "{e}"
+    );
 }

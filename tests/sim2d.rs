@@ -306,13 +306,14 @@ fn config_file_overrides_and_reports_errors_by_line() {
 fn shipped_data_set_is_reproducible() {
     let dir = tempfile::tempdir().unwrap();
     let (clf, tum) = (dir.path().join("sim2d.clf"), dir.path().join("truth.tum"));
-    write_sim2d(&clf, &tum, 1).unwrap();
+    let cfg = dpslam::sim::sim2d::Sim2dConfig::load(&shipped("sim2d.toml")).unwrap();
+    dpslam::sim::sim2d::write_sim2d_with(&cfg, &clf, &tum, 1).unwrap();
     for (made, name) in [(&clf, "sim2d.clf"), (&tum, "truth.tum")] {
         let want = std::fs::read(shipped(name)).unwrap();
         let got = std::fs::read(made).unwrap();
         assert!(
             got == want,
-            "data/sim2d/{name} differs from a fresh `dpslam simulate2d --seed 1` \
+            "data/sim2d/{name} differs from a fresh `dpslam simulate2d --seed 1 --config data/sim2d/sim2d.toml` \
              ({} vs {} bytes): regenerate it as data/sim2d/README.md says",
             got.len(),
             want.len()

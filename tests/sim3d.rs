@@ -5,7 +5,7 @@ use dpslam::eval::ate::{Alignment, AteOptions, evaluate_ate};
 use dpslam::io::sweeps::{list_sweeps, read_sweep};
 use dpslam::io::tum::read_tum;
 use dpslam::sim::sim3d::{
-    Aabb, Patch, Sim3dConfig, World3d, simulate3d, sweep_file_name, write_sim3d_with,
+    Aabb, Patch, Sim3dConfig, World3d, simulate3d, sweep_file_name, write_sim3d,
 };
 use std::path::{Path, PathBuf};
 
@@ -155,7 +155,7 @@ fn written_sweeps_read_back_with_the_expected_points() {
     let dir = tempfile::tempdir().unwrap();
     for gzip in [false, true] {
         let cfg = Sim3dConfig { gzip, ..small(6) };
-        let summary = write_sim3d_with(dir.path(), &cfg, 3).unwrap();
+        let summary = write_sim3d(dir.path(), &cfg, 3).unwrap();
         let sim = simulate3d(&cfg, 3).unwrap();
         assert_eq!(summary, sim.summary().unwrap());
         let files = list_sweeps(&dir.path().join("sweeps")).unwrap();
@@ -195,9 +195,9 @@ fn written_sweeps_read_back_with_the_expected_points() {
 #[test]
 fn fewer_sweeps_replace_a_longer_run() {
     let dir = tempfile::tempdir().unwrap();
-    write_sim3d_with(dir.path(), &small(5), 1).unwrap();
+    write_sim3d(dir.path(), &small(5), 1).unwrap();
     std::fs::write(dir.path().join("sweeps/notes.txt"), "kept").unwrap();
-    write_sim3d_with(dir.path(), &small(3), 1).unwrap();
+    write_sim3d(dir.path(), &small(3), 1).unwrap();
     assert_eq!(list_sweeps(&dir.path().join("sweeps")).unwrap().len(), 3);
     assert!(dir.path().join("sweeps/notes.txt").exists());
     assert_eq!(read_tum(&dir.path().join("truth.tum")).unwrap().len(), 3);

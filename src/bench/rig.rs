@@ -4,7 +4,7 @@
 
 use crate::ancestry::{AncestryTree, Change, NodeId, Numbering};
 use crate::config::Config;
-use crate::dpmap::DpMap;
+use crate::dpmap::{DpMap, ViewCache};
 use crate::filter::{ParticleFilter, Stamp};
 use crate::geometry::{Pose, Pose2, pose2};
 use crate::io::log2d::{LogFormat, open_log2d};
@@ -15,6 +15,7 @@ use crate::raycast::CellKey;
 use crate::scan::Scan;
 use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
 use crate::{Error, Result};
+use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 use std::path::Path;
 
@@ -65,9 +66,9 @@ pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<Prepare
     let mut last_odo = Pose2::identity();
     let mut max_range = 0.0;
     let mut steps = Vec::new();
-    let mut index = 0u32;
-    for item in reader {
+    for (index, item) in reader.enumerate() {
         let s = item?;
+        let index = index as u32;
         if first.is_none() {
             max_range = if cfg.laser.max_range > 0.0 {
                 cfg.laser.max_range
@@ -92,7 +93,6 @@ pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<Prepare
                 }
             }
         }
-        index += 1;
     }
     let first = first.ok_or_else(|| Error::in_file(log, "no laser scans"))?;
     Ok(PreparedLog {
@@ -166,8 +166,8 @@ pub fn score_particles(
     Scorer::<2, Pose2>::score(scorer, &ctx, &candidates, BeamSubset::ALL, Trace::Full)
 }
 
-/// The map update of one step, as the filter does it: every particle gets a
-/// child node and its observation of `scan` from pose `pose·delta` (computed
+/// The map update of one step, as the filter does it (observations in
+/// parallel, then inserted in particle order): every particle gets a child node and its observation of `scan` from pose `pose·delta` (computed
 /// against its own view, free space shared when `shared_free`). Returns the new
 /// nodes, one per particle.
 #[allow(clippy::too_many_arguments)] // the pieces of a filter that the filter keeps private
@@ -182,9 +182,10 @@ pub fn update_map(
     shared_free: bool,
 ) -> Vec<NodeId> {
     type Obs = (Vec<(CellKey<2>, f32, f32)>, Vec<(NodeId, CellKey<2>, f32)>);
+    // In parallel and through a map cache per worker, as the filter does.
     let observations: Vec<Obs> = particles
-        .iter()
-        .map(|&(node, pose)| {
+        .par_iter()
+        .map_init(ViewCache::new, |cache, &(node, pose)| {
             let pose = pose.compose(delta);
             let mut view = map.view(numbering, node);
             let sensor = pose.compose(&scan.sensor);
@@ -206,7 +207,7 @@ pub fn update_map(
             let prior = laser.prior_distance as f32;
             let (mut new, mut free) = (Vec::new(), Vec::new());
             for (k, (h, d)) in acc {
-                match view.entry(k) {
+                match view.entry_cached(cache, k) {
                     Some(e) if shared_free && e.hits <= 0.0 && h <= 0.0 => {
                         free.push((e.node, k, d))
                     }

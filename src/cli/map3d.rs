@@ -44,7 +44,8 @@ fn file_sets_particles(file: Option<&PathBuf>) -> dpslam::Result<bool> {
     let text = std::fs::read_to_string(p).map_err(|e| dpslam::Error::io(p, e))?;
     // The file already parsed as a `Config` in `build_config`; a plain TOML
     // table tells which keys it spells out.
-    let v: toml::Table = toml::from_str(&text).map_err(|e| dpslam::Error::in_file(p, e.to_string()))?;
+    let v: toml::Table =
+        toml::from_str(&text).map_err(|e| dpslam::Error::in_file(p, e.to_string()))?;
     Ok(v.get("filter")
         .and_then(|f| f.as_table())
         .is_some_and(|f| f.contains_key("particles")))
@@ -68,7 +69,10 @@ pub fn run(a: Map3dArgs) -> dpslam::Result<()> {
         Some(dir) => (dir.clone(), a.poses.clone()),
         None => {
             let odo = PathBuf::from(DEFAULT_ODOMETRY);
-            let poses = a.poses.clone().or_else(|| Path::new(&odo).exists().then_some(odo));
+            let poses = a
+                .poses
+                .clone()
+                .or_else(|| Path::new(&odo).exists().then_some(odo));
             (PathBuf::from(DEFAULT_INPUT), poses)
         }
     };

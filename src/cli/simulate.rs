@@ -2,7 +2,7 @@
 //! known ground truth.
 
 use dpslam::sim::sim2d::{Sim2dConfig, write_sim2d_with};
-use dpslam::sim::sim3d::{Sim3dConfig, write_sim3d_with};
+use dpslam::sim::sim3d::{Sim3dConfig, write_sim3d};
 use std::path::PathBuf;
 
 /// Arguments of `dpslam simulate2d`.
@@ -87,7 +87,7 @@ pub fn run3d(a: Simulate3dArgs) -> dpslam::Result<()> {
         cfg.columns = n;
     }
     cfg.gzip |= a.gzip;
-    let summary = write_sim3d_with(&a.out, &cfg, a.seed)?;
+    let summary = write_sim3d(&a.out, &cfg, a.seed)?;
     println!(
         "simulate3d: seed {}: {summary} -> {}",
         a.seed,

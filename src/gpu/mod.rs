@@ -6,8 +6,8 @@
 //! walks the beam (Amanatides–Woo, in cell units relative to the sensor's
 //! cell), resolves each crossed cell for the candidate's particle from the
 //! flattened DP-map ([`flatten`]) and the depth-first numbering, and writes
-//! the beam log-likelihood (f32). The host reads the per-beam values back
-//! once and sums them per candidate in f64.
+//! the beam likelihood (f32). The host reads the per-beam values back once,
+//! applies the floor and the log in f64 and sums them per candidate.
 //!
 //! Uploads per call: the candidates (80 B each), the beams of the subset
 //! (32 B each) and 48 B of parameters. The map is flattened and uploaded
@@ -41,9 +41,8 @@ struct Params {
     two_var: f32,
     max_error: f32,
     prior: f32,
-    ln_floor: f32,
     dim: u32,
-    _pad: [u32; 3],
+    _pad: [u32; 4],
 }
 
 /// One candidate (`Cand` in the WGSL).
@@ -513,9 +512,8 @@ impl State {
             two_var: (2.0 * laser.variance / (cell * cell)) as f32,
             max_error: (laser.max_error / cell) as f32,
             prior: (laser.prior_density * cell) as f32,
-            ln_floor: laser.floor.ln() as f32,
             dim: D as u32,
-            _pad: [0; 3],
+            _pad: [0; 4],
         };
         self.queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
@@ -570,6 +568,7 @@ impl State {
         rx.recv()
             .map_err(|e| gpu_err("reading back", e))?
             .map_err(|e| gpu_err("reading back", e))?;
+        let floor = laser.floor;
         let sums = {
             let view = slice
                 .get_mapped_range()
@@ -577,7 +576,7 @@ impl State {
             let vals: &[f32] =
                 bytemuck::try_cast_slice(&view).map_err(|e| gpu_err("reading back", e))?;
             vals.chunks_exact(n_beams as usize)
-                .map(|c| c.iter().map(|&v| v as f64).sum())
+                .map(|c| c.iter().map(|&l| (l as f64).max(floor).ln()).sum())
                 .collect()
         };
         self.staging.buf.unmap();

@@ -152,8 +152,15 @@ pub fn validate_map3d(m: &Map3dConfig) -> Result<()> {
     if !pos(m.max_range) || !nonneg(m.min_range) || m.min_range >= m.max_range {
         return bad("max_range must be positive and above min_range ≥ 0");
     }
-    if !pos(m.beam_voxel) || !pos(m.variance) || !pos(m.icp_voxel) || !pos(m.icp_max_distance) || !pos(m.points_voxel) {
-        return bad("beam_voxel, variance, icp_voxel, icp_max_distance and points_voxel must be positive");
+    if !pos(m.beam_voxel)
+        || !pos(m.variance)
+        || !pos(m.icp_voxel)
+        || !pos(m.icp_max_distance)
+        || !pos(m.points_voxel)
+    {
+        return bad(
+            "beam_voxel, variance, icp_voxel, icp_max_distance and points_voxel must be positive",
+        );
     }
     if !nonneg(m.occupied_density) {
         return bad("occupied_density must be ≥ 0");
@@ -169,8 +176,14 @@ pub fn validate_map3d(m: &Map3dConfig) -> Result<()> {
     if !noise.iter().all(|&v| nonneg(v)) {
         return bad("motion noise parameters must be ≥ 0");
     }
-    if m.local_map_sweeps == 0 || m.icp_levels == 0 || m.icp_iterations == 0 || m.icp_max_points == 0 {
-        return bad("local_map_sweeps, icp_levels, icp_iterations and icp_max_points must be at least 1");
+    if m.local_map_sweeps == 0
+        || m.icp_levels == 0
+        || m.icp_iterations == 0
+        || m.icp_max_points == 0
+    {
+        return bad(
+            "local_map_sweeps, icp_levels, icp_iterations and icp_max_points must be at least 1",
+        );
     }
     Ok(())
 }
@@ -250,7 +263,12 @@ pub fn occupied_voxels(filter: &ParticleFilter<3, Pose3>, min_density: f64) -> V
 
 /// Runs 3-D DP-SLAM on the sweeps of `input` and writes the run folder `out`.
 /// `poses` (TUM or KITTI) gives one prior pose per sweep, in order.
-pub fn run_map3d(input: &Path, out: &Path, cfg: &Config, poses: Option<&Path>) -> Result<Map3dSummary> {
+pub fn run_map3d(
+    input: &Path,
+    out: &Path,
+    cfg: &Config,
+    poses: Option<&Path>,
+) -> Result<Map3dSummary> {
     run_map3d_with(input, out, cfg, poses, &Map3dOptions::default())
 }
 
@@ -416,7 +434,11 @@ pub fn run_map3d_with(
     }
     let voxels = occupied_voxels(&filter, m.occupied_density);
     let points = if opts.points {
-        Some(registered_points(&paths, &trajectory.iter().map(|s| s.pose).collect::<Vec<_>>(), m)?)
+        Some(registered_points(
+            &paths,
+            &trajectory.iter().map(|s| s.pose).collect::<Vec<_>>(),
+            m,
+        )?)
     } else {
         None
     };
@@ -437,7 +459,8 @@ pub fn run_map3d_with(
         sweeps: paths.len(),
         particles: cfg.filter.particles,
         samples_per_particle: cfg.filter.samples_per_particle,
-        mean_beams_per_sweep: beams_per_sweep.iter().sum::<usize>() as f64 / beams_per_sweep.len() as f64,
+        mean_beams_per_sweep: beams_per_sweep.iter().sum::<usize>() as f64
+            / beams_per_sweep.len() as f64,
         points_per_sweep,
         beams_per_sweep,
         voxel_size_m: m.voxel_size,
@@ -517,7 +540,11 @@ mod tests {
         }
         pts.push([20.0, 0.0, 0.0]);
         let s = sweep_to_scan(&pts, &m);
-        assert!(s.beams.len() <= 100 && s.beams.len() >= 50, "{}", s.beams.len());
+        assert!(
+            s.beams.len() <= 100 && s.beams.len() >= 50,
+            "{}",
+            s.beams.len()
+        );
         for b in &s.beams {
             let n = b.dir.iter().map(|d| d * d).sum::<f64>().sqrt();
             assert!((n - 1.0).abs() < 1e-9);
@@ -536,7 +563,12 @@ mod tests {
             voxel_size: 0.0,
             ..Map3dConfig::default()
         };
-        assert!(validate_map3d(&m).unwrap_err().to_string().contains("voxel_size"));
+        assert!(
+            validate_map3d(&m)
+                .unwrap_err()
+                .to_string()
+                .contains("voxel_size")
+        );
         assert!(validate_map3d(&Map3dConfig::default()).is_ok());
     }
 }

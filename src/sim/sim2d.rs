@@ -17,12 +17,12 @@
 
 use crate::geometry::{Pose, Pose2, pose2, wrap_angle, xyt};
 use crate::scan::LaserScan2d;
+use crate::sim::path::SmoothPath;
 use crate::{Error, Result};
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
 use rand_pcg::Pcg64;
 use serde::{Deserialize, Serialize};
-use std::f64::consts::PI;
 use std::fmt::Write as _;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
@@ -34,9 +34,6 @@ pub const NO_RETURN_RANGE: f64 = 81.91;
 /// Hard cap on the number of scans one simulation may produce, so that a
 /// mistyped configuration fails with a message instead of exhausting memory.
 const MAX_SCANS: usize = 2_000_000;
-
-/// Turns sharper than this (rad) cannot be filleted into a drivable arc.
-const MAX_TURN: f64 = 179.0 * PI / 180.0;
 
 /// A wall: a line segment between two points in the world frame (m).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -424,148 +421,6 @@ impl Sim2dConfig {
     }
 }
 
-/// One drivable piece of the path.
-#[derive(Debug, Clone, Copy)]
-enum Piece {
-    /// Straight from `p0` along `heading` (rad) for `len` (m).
-    Line {
-        p0: [f64; 2],
-        heading: f64,
-        len: f64,
-    },
-    /// Arc about `centre` of radius `r` (m), starting at heading `h0` (rad),
-    /// turning left (`sign` = 1) or right (−1) for `len` (m).
-    Arc {
-        centre: [f64; 2],
-        r: f64,
-        h0: f64,
-        sign: f64,
-        len: f64,
-    },
-}
-
-impl Piece {
-    fn len(&self) -> f64 {
-        match *self {
-            Piece::Line { len, .. } | Piece::Arc { len, .. } => len,
-        }
-    }
-
-    /// Pose at arc length `s` (m) into the piece.
-    fn pose(&self, s: f64) -> Pose2 {
-        match *self {
-            Piece::Line { p0, heading, .. } => pose2(
-                p0[0] + s * heading.cos(),
-                p0[1] + s * heading.sin(),
-                heading,
-            ),
-            Piece::Arc {
-                centre,
-                r,
-                h0,
-                sign,
-                ..
-            } => {
-                let h = h0 + sign * s / r;
-                // The centre lies on the side the robot turns to, so the robot
-                // sits at r on the other side, perpendicular to its heading.
-                pose2(
-                    centre[0] + sign * r * h.sin(),
-                    centre[1] - sign * r * h.cos(),
-                    h,
-                )
-            }
-        }
-    }
-}
-
-/// The waypoint polyline with rounded corners, parameterised by arc length.
-struct SmoothPath {
-    pieces: Vec<Piece>,
-}
-
-impl SmoothPath {
-    fn new(waypoints: &[[f64; 2]], radius: f64) -> Result<Self> {
-        let n = waypoints.len();
-        let mut dirs = Vec::with_capacity(n - 1);
-        let mut lens = Vec::with_capacity(n - 1);
-        for (i, w) in waypoints.windows(2).enumerate() {
-            let d = [w[1][0] - w[0][0], w[1][1] - w[0][1]];
-            let len = d[0].hypot(d[1]);
-            if len < 1e-6 {
-                return Err(Error::Config(format!(
-                    "simulate2d: waypoints {i} and {} coincide",
-                    i + 1
-                )));
-            }
-            dirs.push(d[1].atan2(d[0]));
-            lens.push(len);
-        }
-        // For each interior waypoint: signed turn, tangent length, arc radius.
-        // A leg lends at most half its length to each of its two corners.
-        let mut corners = vec![(0.0, 0.0, 0.0); n];
-        for i in 1..n - 1 {
-            let turn = wrap_angle(dirs[i] - dirs[i - 1]);
-            if turn.abs() < 1e-12 || radius == 0.0 {
-                continue;
-            }
-            if turn.abs() > MAX_TURN {
-                return Err(Error::Config(format!(
-                    "simulate2d: the path reverses at waypoint {i} (turn of {:.1}°)",
-                    turn.to_degrees()
-                )));
-            }
-            let half = (turn.abs() / 2.0).tan();
-            let tangent = (radius * half).min(lens[i - 1] / 2.0).min(lens[i] / 2.0);
-            corners[i] = (turn, tangent, tangent / half);
-        }
-        let mut pieces = Vec::new();
-        for i in 0..n - 1 {
-            let (a, h) = (waypoints[i], dirs[i]);
-            let (cos, sin) = (h.cos(), h.sin());
-            let start = corners[i].1;
-            let end = lens[i] - corners[i + 1].1;
-            pieces.push(Piece::Line {
-                p0: [a[0] + start * cos, a[1] + start * sin],
-                heading: h,
-                len: end - start,
-            });
-            let (turn, _, r) = corners[i + 1];
-            if r > 0.0 {
-                let sign = turn.signum();
-                let p = [a[0] + end * cos, a[1] + end * sin];
-                pieces.push(Piece::Arc {
-                    centre: [p[0] - sign * r * sin, p[1] + sign * r * cos],
-                    r,
-                    h0: h,
-                    sign,
-                    len: r * turn.abs(),
-                });
-            }
-        }
-        Ok(SmoothPath { pieces })
-    }
-
-    fn length(&self) -> f64 {
-        self.pieces.iter().map(Piece::len).sum()
-    }
-
-    /// Poses at the (non-decreasing) arc lengths `s` (m).
-    fn sample(&self, s: impl Iterator<Item = f64>) -> Vec<Pose2> {
-        let mut k = 0;
-        let mut before = 0.0;
-        s.map(|s| {
-            while k + 1 < self.pieces.len() && s > before + self.pieces[k].len() {
-                before += self.pieces[k].len();
-                k += 1;
-            }
-            let p = &self.pieces[k];
-            p.pose((s - before).clamp(0.0, p.len()))
-        })
-        .collect()
-    }
-}
-
 /// Result of [`simulate2d`].
 #[derive(Debug, Clone)]
 pub struct Sim2dOutput {
@@ -683,7 +538,7 @@ const LASER_STREAM: u64 = 0x9E37_79B9_7F4A_7C15;
 /// back on itself, or more than two million scans).
 pub fn simulate2d(cfg: &Sim2dConfig, seed: u64) -> Result<Sim2dOutput> {
     cfg.validate()?;
-    let path = SmoothPath::new(&cfg.waypoints, cfg.turn_radius)?;
+    let path = SmoothPath::new(&cfg.waypoints, cfg.turn_radius, "simulate2d")?;
     let length = path.length();
     let step = cfg.speed * cfg.scan_period;
     // The small slack keeps the last scan when the length is a whole number
@@ -871,7 +726,7 @@ mod tests {
     #[test]
     fn smooth_path_is_continuous_and_rounds_corners() {
         let cfg = Sim2dConfig::default();
-        let path = SmoothPath::new(&cfg.waypoints, 1.0).unwrap();
+        let path = SmoothPath::new(&cfg.waypoints, 1.0, "test").unwrap();
         // Legs 14 + 12 + 20 + 12 + 12 = 70 m; each of the 4 corners of radius
         // 1 m replaces 2 m of legs by a π/2 m arc.
         let expect = 70.0 - 4.0 * (2.0 - FRAC_PI_2);
@@ -901,7 +756,12 @@ mod tests {
     #[test]
     fn short_legs_shrink_the_arc() {
         // A 1 m leg between two right-angle turns can lend only 0.5 m to each.
-        let path = SmoothPath::new(&[[0.0, 0.0], [5.0, 0.0], [5.0, 1.0], [0.0, 1.0]], 2.0).unwrap();
+        let path = SmoothPath::new(
+            &[[0.0, 0.0], [5.0, 0.0], [5.0, 1.0], [0.0, 1.0]],
+            2.0,
+            "test",
+        )
+        .unwrap();
         let expect = 4.5 + FRAC_PI_2 * 0.5 * 2.0 + 4.5;
         assert!((path.length() - expect).abs() < 1e-9, "{}", path.length());
     }

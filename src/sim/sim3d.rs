@@ -27,8 +27,9 @@
 //! noise come from two `Pcg64` streams derived from it.
 
 use crate::eval::ate::{Alignment, AteOptions, evaluate_ate};
-use crate::geometry::{Pose3, wrap_angle};
+use crate::geometry::Pose3;
 use crate::io::tum::Stamped;
+use crate::sim::path::SmoothPath;
 use crate::{Error, Result};
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rand::{RngExt, SeedableRng};
@@ -51,11 +52,8 @@ const MAX_RAYS_PER_SWEEP: usize = 1 << 22;
 const MAX_SWEEPS: usize = 1_000_000;
 
 /// Most rays [`simulate3d`] may keep in memory in all (16 bytes a point);
-/// [`write_sim3d_with`] streams and has no such limit.
+/// [`write_sim3d`] streams and has no such limit.
 const MAX_RAYS_IN_MEMORY: usize = 100_000_000;
-
-/// Turns sharper than this (rad) cannot be filleted into a drivable arc.
-const MAX_TURN: f64 = 179.0 * PI / 180.0;
 
 /// Rays closer to parallel with a patch than this (|cos| of the angle
 /// between ray and normal) miss it: a grazing ray sees nothing to stop it.
@@ -716,150 +714,6 @@ impl Sim3dConfig {
 
 // ------------------------------------------------------------------ path ---
 
-/// One drivable piece of the ground track.
-#[derive(Debug, Clone, Copy)]
-enum Piece {
-    /// Straight from `p0` along `heading` (rad) for `len` (m).
-    Line {
-        p0: [f64; 2],
-        heading: f64,
-        len: f64,
-    },
-    /// Arc about `centre` of radius `r` (m), starting at heading `h0` (rad),
-    /// turning left (`sign` = 1) or right (−1) for `len` (m).
-    Arc {
-        centre: [f64; 2],
-        r: f64,
-        h0: f64,
-        sign: f64,
-        len: f64,
-    },
-}
-
-impl Piece {
-    fn len(&self) -> f64 {
-        match *self {
-            Piece::Line { len, .. } | Piece::Arc { len, .. } => len,
-        }
-    }
-
-    /// `(x, y, heading)` at arc length `s` (m) into the piece.
-    fn at(&self, s: f64) -> (f64, f64, f64) {
-        match *self {
-            Piece::Line { p0, heading, .. } => (
-                p0[0] + s * heading.cos(),
-                p0[1] + s * heading.sin(),
-                heading,
-            ),
-            Piece::Arc {
-                centre,
-                r,
-                h0,
-                sign,
-                ..
-            } => {
-                let h = h0 + sign * s / r;
-                // The centre lies on the side the vehicle turns to, so the
-                // vehicle sits at r on the other side, perpendicular to its
-                // heading.
-                (
-                    centre[0] + sign * r * h.sin(),
-                    centre[1] - sign * r * h.cos(),
-                    h,
-                )
-            }
-        }
-    }
-}
-
-/// The waypoint polyline with rounded corners, parameterised by arc length
-/// (the same construction as the 2-D simulator's).
-struct GroundTrack {
-    pieces: Vec<Piece>,
-}
-
-impl GroundTrack {
-    fn new(waypoints: &[[f64; 2]], radius: f64) -> Result<Self> {
-        let n = waypoints.len();
-        let mut dirs = Vec::with_capacity(n - 1);
-        let mut lens = Vec::with_capacity(n - 1);
-        for (i, w) in waypoints.windows(2).enumerate() {
-            let d = [w[1][0] - w[0][0], w[1][1] - w[0][1]];
-            let len = d[0].hypot(d[1]);
-            if len < 1e-6 {
-                return Err(Error::Config(format!(
-                    "simulate3d: waypoints {i} and {} coincide",
-                    i + 1
-                )));
-            }
-            dirs.push(d[1].atan2(d[0]));
-            lens.push(len);
-        }
-        // Per interior waypoint: signed turn, tangent length, arc radius; a
-        // leg lends at most half its length to each of its two corners.
-        let mut corners = vec![(0.0, 0.0, 0.0); n];
-        for i in 1..n - 1 {
-            let turn = wrap_angle(dirs[i] - dirs[i - 1]);
-            if turn.abs() < 1e-12 || radius == 0.0 {
-                continue;
-            }
-            if turn.abs() > MAX_TURN {
-                return Err(Error::Config(format!(
-                    "simulate3d: the path reverses at waypoint {i} (turn of {:.1}°)",
-                    turn.to_degrees()
-                )));
-            }
-            let half = (turn.abs() / 2.0).tan();
-            let tangent = (radius * half).min(lens[i - 1] / 2.0).min(lens[i] / 2.0);
-            corners[i] = (turn, tangent, tangent / half);
-        }
-        let mut pieces = Vec::new();
-        for i in 0..n - 1 {
-            let (a, h) = (waypoints[i], dirs[i]);
-            let (sin, cos) = h.sin_cos();
-            let start = corners[i].1;
-            let end = lens[i] - corners[i + 1].1;
-            pieces.push(Piece::Line {
-                p0: [a[0] + start * cos, a[1] + start * sin],
-                heading: h,
-                len: end - start,
-            });
-            let (turn, _, r) = corners[i + 1];
-            if r > 0.0 {
-                let sign = turn.signum();
-                let p = [a[0] + end * cos, a[1] + end * sin];
-                pieces.push(Piece::Arc {
-                    centre: [p[0] - sign * r * sin, p[1] + sign * r * cos],
-                    r,
-                    h0: h,
-                    sign,
-                    len: r * turn.abs(),
-                });
-            }
-        }
-        Ok(GroundTrack { pieces })
-    }
-
-    fn length(&self) -> f64 {
-        self.pieces.iter().map(Piece::len).sum()
-    }
-
-    /// `(x, y, heading)` at the (non-decreasing) arc lengths `s` (m).
-    fn sample(&self, s: impl Iterator<Item = f64>) -> Vec<(f64, f64, f64)> {
-        let mut k = 0;
-        let mut before = 0.0;
-        s.map(|s| {
-            while k + 1 < self.pieces.len() && s > before + self.pieces[k].len() {
-                before += self.pieces[k].len();
-                k += 1;
-            }
-            let p = &self.pieces[k];
-            p.at((s - before).clamp(0.0, p.len()))
-        })
-        .collect()
-    }
-}
-
 /// Pose of the sensor of a vehicle standing at ground-track point `(x, y)`
 /// (m) with heading `heading` (rad), its attitude set by the ground under
 /// its four wheels.
@@ -933,7 +787,7 @@ struct Plan {
 impl Plan {
     fn new(cfg: &Sim3dConfig, seed: u64) -> Result<Self> {
         cfg.validate()?;
-        let track = GroundTrack::new(&cfg.waypoints, cfg.turn_radius)?;
+        let track = SmoothPath::new(&cfg.waypoints, cfg.turn_radius, "simulate3d")?;
         let length = track.length();
         let n = cfg.sweeps;
         let step = length / (n - 1) as f64;
@@ -945,7 +799,7 @@ impl Plan {
             + 1.0;
         let mut truth = Vec::with_capacity(n);
         for (k, (x, y, h)) in track
-            .sample((0..n).map(|k| (k as f64 * step).min(length)))
+            .sample_xyh((0..n).map(|k| (k as f64 * step).min(length)))
             .into_iter()
             .enumerate()
         {
@@ -1173,7 +1027,7 @@ pub fn kitti_bytes(points: &[[f32; 4]]) -> Vec<u8> {
 /// Fails with [`Error::Config`] if the configuration is unusable (see
 /// [`Sim3dConfig::validate`], plus coinciding waypoints, a path that turns
 /// back on itself or leaves the ground, or more than 10⁸ rays in all: use
-/// [`write_sim3d_with`], which streams, for more).
+/// [`write_sim3d`], which streams, for more).
 pub fn simulate3d(cfg: &Sim3dConfig, seed: u64) -> Result<Sim3dOutput> {
     cfg.validate()?;
     let rays = cfg.rings * cfg.columns;
@@ -1200,12 +1054,6 @@ pub fn simulate3d(cfg: &Sim3dConfig, seed: u64) -> Result<Sim3dOutput> {
     })
 }
 
-/// Simulates the default configuration with `seed` into `dir`; see
-/// [`write_sim3d_with`].
-pub fn write_sim3d(dir: &Path, seed: u64) -> Result<Sim3dSummary> {
-    write_sim3d_with(dir, &Sim3dConfig::default(), seed)
-}
-
 /// Simulates `cfg` with `seed` and writes, under `dir` (created if needed):
 /// `sweeps/NNNNNN.bin` (or `.bin.gz`, see [`Sim3dConfig::gzip`]), one KITTI
 /// sweep per pose in the sensor frame; `odometry.tum`, the noisy odometry;
@@ -1217,7 +1065,7 @@ pub fn write_sim3d(dir: &Path, seed: u64) -> Result<Sim3dSummary> {
 /// good one was. Sweep files of an earlier run (`NNNNNN.bin[.gz]` names)
 /// that this run did not write are removed at the end, so that `sweeps/`
 /// holds exactly this sequence; other files there are left alone.
-pub fn write_sim3d_with(dir: &Path, cfg: &Sim3dConfig, seed: u64) -> Result<Sim3dSummary> {
+pub fn write_sim3d(dir: &Path, cfg: &Sim3dConfig, seed: u64) -> Result<Sim3dSummary> {
     let plan = Plan::new(cfg, seed)?;
     let sweep_dir = dir.join("sweeps");
     std::fs::create_dir_all(&sweep_dir).map_err(|e| Error::io(&sweep_dir, e))?;
@@ -1417,7 +1265,8 @@ mod tests {
 
     #[test]
     fn bad_configs_are_rejected_not_panicked_on() {
-        let cases: Vec<(&str, Box<dyn Fn(&mut Sim3dConfig)>)> = vec![
+        type Change = Box<dyn Fn(&mut Sim3dConfig)>;
+        let cases: Vec<(&str, Change)> = vec![
             ("max_range", Box::new(|c| c.max_range = 0.0)),
             ("track", Box::new(|c| c.track = f64::NAN)),
             ("range_sigma", Box::new(|c| c.range_sigma = -0.1)),
