@@ -16,7 +16,7 @@
 //! limits the counts (3000 particles cost tens of seconds of set-up).
 
 use criterion::{BatchSize, BenchmarkId, Criterion, criterion_group, criterion_main};
-use dpslam::bench::rig::{PreparedLog, maintain, prepare_log, score_particles, update_map};
+use dpslam::bench::rig::{PreparedLog, maintain, moved_samples, prepare_log, score_particles, update_map};
 use dpslam::config::Config;
 use dpslam::filter::{ParticleFilter, stream};
 use dpslam::geometry::Pose2;
@@ -65,27 +65,14 @@ fn iteration(c: &mut Criterion) {
             b.iter(|| black_box(score_particles(&filter, &scorer, &next.delta, &next.scan)))
         });
 
-        let parents: Vec<_> = filter
-            .particles()
-            .iter()
-            .map(|p| (p.node, p.pose))
-            .collect();
-        let shared = cfg.map.shared_free_space;
+        let everyone: Vec<usize> = (0..n).collect();
+        let samples = moved_samples(&filter, &everyone, &next.delta);
         group.bench_with_input(BenchmarkId::new("map_update", n), &n, |b, _| {
             b.iter_batched(
-                || (filter.map().clone(), filter.tree().clone()),
-                |(mut map, mut tree)| {
-                    let nodes = update_map(
-                        &mut map,
-                        &mut tree,
-                        filter.numbering(),
-                        filter.laser(),
-                        &parents,
-                        &next.delta,
-                        &next.scan,
-                        shared,
-                    );
-                    black_box((map, tree, nodes))
+                || filter.clone(),
+                |mut f| {
+                    update_map(&mut f, &samples, &next.scan);
+                    black_box(f)
                 },
                 BatchSize::PerIteration,
             )
@@ -94,28 +81,20 @@ fn iteration(c: &mut Criterion) {
         // Resampled parents: n uniform draws, so about 1 − 1/e of the
         // lineages survive, as with equal weights.
         let mut rng = stream(cfg.seed, 0, n as u64);
-        let resampled: Vec<_> = (0..n)
-            .map(|_| parents[(rng.random::<f64>() * n as f64) as usize % n])
+        let resampled: Vec<usize> = (0..n)
+            .map(|_| (rng.random::<f64>() * n as f64) as usize % n)
             .collect();
+        let resampled = moved_samples(&filter, &resampled, &next.delta);
         group.bench_with_input(BenchmarkId::new("ancestry", n), &n, |b, _| {
             b.iter_batched(
                 || {
-                    let (mut map, mut tree) = (filter.map().clone(), filter.tree().clone());
-                    let held = update_map(
-                        &mut map,
-                        &mut tree,
-                        filter.numbering(),
-                        filter.laser(),
-                        &resampled,
-                        &next.delta,
-                        &next.scan,
-                        shared,
-                    );
-                    (map, tree, held, filter.numbering().clone())
+                    let mut f = filter.clone();
+                    update_map(&mut f, &resampled, &next.scan);
+                    f
                 },
-                |(mut map, mut tree, mut held, mut numbering)| {
-                    let changes = maintain(&mut tree, &mut map, &mut held, &mut numbering);
-                    black_box((map, tree, changes))
+                |mut f| {
+                    maintain(&mut f);
+                    black_box(f)
                 },
                 BatchSize::PerIteration,
             )

@@ -20,7 +20,7 @@ use crate::ancestry::{AncestryTree, NodeId, Numbering};
 use crate::config::{FilterConfig, Resampling};
 use crate::dpmap::{DpMap, ViewCache};
 use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
 use crate::motion_model::MotionModel;
@@ -50,10 +50,23 @@ pub struct Particle<P> {
 }
 
 /// A candidate pose drawn from a particle in the current step.
-#[derive(Debug, Clone, Copy)]
-struct Sample<P> {
-    pose: P,
-    parent: usize,
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sample<P> {
+    /// Robot pose in the map frame.
+    pub pose: P,
+    /// Index of the particle it was drawn from.
+    pub parent: usize,
+}
+
+/// The outcome of [`ParticleFilter::weigh`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Weights {
+    /// Scan log-likelihood per sample; culled samples have −∞.
+    pub scores: Vec<f64>,
+    /// Samples left after the quick culling passes.
+    pub after_quick: usize,
+    /// Samples left after the full passes.
+    pub after_full: usize,
 }
 
 /// What one step did, for logs and run statistics.
@@ -91,11 +104,13 @@ pub fn stream(seed: u64, step: u64, index: u64) -> Pcg64 {
 /// Stream index used for resampling (particle streams use 0..N).
 const RESAMPLE_STREAM: u64 = u64::MAX;
 
-/// The particle filter with its shared DP-map.
+/// The particle filter with its shared DP-map. Cloning copies the map, the
+/// tree and the particles and shares the (immutable) models.
+#[derive(Clone)]
 pub struct ParticleFilter<const D: usize, P: Pose<D>> {
     cfg: FilterConfig,
     laser: LaserModel,
-    motion: Box<dyn MotionModel<D, P>>,
+    motion: Arc<dyn MotionModel<D, P>>,
     tree: AncestryTree<Stamp<P>>,
     map: DpMap<D>,
     numbering: Numbering,
@@ -106,9 +121,9 @@ pub struct ParticleFilter<const D: usize, P: Pose<D>> {
     /// Share free-space updates of cells all see as free (see `MapConfig`).
     shared_free_space: bool,
     /// Computes scan likelihoods (CPU by default).
-    scorer: Box<dyn Scorer<D, P>>,
+    scorer: Arc<dyn Scorer<D, P>>,
     /// One map cache per worker thread (plus one for callers outside the pool).
-    caches: Vec<Mutex<ViewCache<D>>>,
+    caches: Arc<Vec<Mutex<ViewCache<D>>>>,
 }
 
 impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
@@ -146,7 +161,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         Self {
             cfg,
             laser,
-            motion,
+            motion: Arc::from(motion),
             tree,
             map,
             numbering,
@@ -155,10 +170,12 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             seed,
             steps: 0,
             shared_free_space: true,
-            scorer: Box::new(CpuScorer::<D>::new()),
-            caches: (0..=rayon::current_num_threads())
-                .map(|_| Mutex::new(ViewCache::new()))
-                .collect(),
+            scorer: Arc::new(CpuScorer::<D>::new()),
+            caches: Arc::new(
+                (0..=rayon::current_num_threads())
+                    .map(|_| Mutex::new(ViewCache::new()))
+                    .collect(),
+            ),
         }
     }
 
@@ -170,7 +187,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
 
     /// Replaces the scan scorer (e.g. with the GPU backend).
     pub fn set_scorer(&mut self, scorer: Box<dyn Scorer<D, P>>) {
-        self.scorer = scorer;
+        self.scorer = Arc::from(scorer);
     }
 
     /// The scan scorer in use.
@@ -183,22 +200,28 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     pub fn step(&mut self, delta: &P, scan: &Scan<D, P>, scan_index: u32) -> StepStats {
         self.steps += 1;
         let samples = self.predict(delta);
-        let (scores, after_quick, after_full) = self.weigh(&samples, scan);
-        let chosen = self.resample(&scores);
-        let distinct_parents = self.update(&samples, &scores, &chosen, scan, scan_index);
+        let weights = self.weigh(&samples, scan);
+        let chosen = self.resample(&weights.scores);
+        let distinct_parents = self.update(&samples, &weights.scores, &chosen, scan, scan_index);
         self.prune();
         StepStats {
             samples: samples.len(),
-            after_quick,
-            after_full,
-            best_log_likelihood: scores.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+            after_quick: weights.after_quick,
+            after_full: weights.after_full,
+            best_log_likelihood: weights
+                .scores
+                .iter()
+                .cloned()
+                .fold(f64::NEG_INFINITY, f64::max),
             distinct_parents,
             tree_nodes: self.tree.len(),
             map_entries: self.map.entry_count(),
         }
     }
 
-    fn predict(&self, delta: &P) -> Vec<Sample<P>> {
+    /// Predict: `samples_per_particle` poses per particle from the motion
+    /// model, each particle on its own RNG stream for this step.
+    pub fn predict(&self, delta: &P) -> Vec<Sample<P>> {
         let k = self.cfg.samples_per_particle;
         let step = self.steps;
         let seed = self.seed;
@@ -217,9 +240,9 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             .collect()
     }
 
-    /// Scores every sample; culled samples get −∞. Returns the scores and the
-    /// survivor counts after the quick and the full passes.
-    fn weigh(&self, samples: &[Sample<P>], scan: &Scan<D, P>) -> (Vec<f64>, usize, usize) {
+    /// Weigh: scores every sample against its parent particle's map view, in
+    /// culling passes (quick, then full); culled samples get −∞.
+    pub fn weigh(&self, samples: &[Sample<P>], scan: &Scan<D, P>) -> Weights {
         let passes = self.cfg.passes.min(scan.beams.len().max(1));
         let ctx = ScoreContext {
             map: &self.map,
@@ -260,7 +283,11 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         for &i in &alive {
             out[i] = scores[i];
         }
-        (out, survivors[0], survivors[1])
+        Weights {
+            scores: out,
+            after_quick: survivors[0],
+            after_full: survivors[1],
+        }
     }
 
     /// This worker thread's map cache.
@@ -270,8 +297,9 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         self.caches[i].lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Indices of the samples that become the next particles, ascending.
-    fn resample(&self, scores: &[f64]) -> Vec<usize> {
+    /// Resample: indices of the samples that become the next particles,
+    /// ascending, drawn by weight `exp(score − best)`.
+    pub fn resample(&self, scores: &[f64]) -> Vec<usize> {
         let n = self.cfg.particles;
         let best = scores.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
         let weights: Vec<f64> = scores.iter().map(|s| (s - best).exp()).collect();
@@ -295,9 +323,10 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         chosen
     }
 
-    /// Creates the new particles' nodes and adds their observations to the map.
-    /// Returns the number of distinct parent particles.
-    fn update(
+    /// Update: each chosen sample becomes a particle with a new ancestry node
+    /// (child of its parent particle's node) holding its observation of
+    /// `scan`. Returns the number of distinct parent particles.
+    pub fn update(
         &mut self,
         samples: &[Sample<P>],
         scores: &[f64],
@@ -347,7 +376,9 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         parents.len()
     }
 
-    fn prune(&mut self) {
+    /// Prune: removes dead branches and merges only-children, in the tree and
+    /// the map alike, then renumbers the tree for the next step.
+    pub fn prune(&mut self) {
         let mut held: Vec<NodeId> = self.particles.iter().map(|p| p.node).collect();
         let changes = self.tree.maintain(&mut held);
         self.map.apply(&changes);

@@ -100,7 +100,10 @@ impl Pose<3> for Pose3 {
         Isometry3::identity()
     }
     fn compose(&self, rhs: &Self) -> Self {
-        self * rhs
+        // Keep the quaternion unit: rounding errors compound along long chains.
+        let mut p = self * rhs;
+        p.rotation.renormalize();
+        p
     }
     fn inverse(&self) -> Self {
         Isometry3::inverse(self)

@@ -209,7 +209,7 @@ mod tests {
             let p = reach * (1.0 - (-(1.0 / 8.0) * (t_out - t)).exp());
             let err: f64 = 0.5 * (t + t_out) - 2.0;
             if err < 2.0 {
-                eval += p * (-err * err / (2.0 * 0.017)).exp();
+                eval += p * (-err * err / (2.0 * m.variance)).exp();
             }
             reach -= p;
             t = t_out;

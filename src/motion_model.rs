@@ -151,7 +151,12 @@ impl MotionModel<3, crate::geometry::Pose3> for Gaussian6dModel {
             Translation3::from(delta.translation.vector + dt),
             delta.rotation * UnitQuaternion::from_scaled_axis(dr),
         );
-        prev * noisy
+        // Renormalise: the 3-D pipeline chains poses through inverses and
+        // products every sweep, and an unnormalised quaternion's error grows
+        // geometrically along that chain.
+        let mut p = prev * noisy;
+        p.rotation.renormalize();
+        p
     }
 }
 

@@ -2,28 +2,16 @@
 //! (same motion gate and beam thinning as `map2d`), a filter warmed up on the
 //! first of them, and the pieces of one step that can be timed on their own.
 
-use crate::ancestry::{AncestryTree, Change, NodeId, Numbering};
 use crate::config::Config;
-use crate::dpmap::{DpMap, ViewCache};
-use crate::filter::{ParticleFilter, Stamp};
-use crate::geometry::{Pose, Pose2, pose2};
-use crate::io::log2d::{LogFormat, open_log2d};
+use crate::filter::{ParticleFilter, Sample};
+use crate::geometry::{Pose, Pose2};
+use crate::io::log2d::open_log2d;
 use crate::laser_model::{LaserModel, Trace};
-use crate::motion_model::CdtModel;
-use crate::pipeline::map2d::to_scan;
-use crate::raycast::CellKey;
+use crate::pipeline::map2d::{new_filter, sensor_mount, to_scan, usable_range};
 use crate::scan::Scan;
 use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
 use crate::{Error, Result};
-use rayon::prelude::*;
-use rustc_hash::FxHashMap;
 use std::path::Path;
-
-/// Mirrors `map2d`'s default usable-range cap (m).
-const DEFAULT_RANGE_CAP: f64 = 20.0;
-
-/// Mirrors `map2d`'s laser mounting for DP-SLAM-format logs (m ahead).
-const DPSLAM_LASER_OFFSET: f64 = 0.40;
 
 /// One filter step's input.
 #[derive(Debug, Clone)]
@@ -54,13 +42,7 @@ pub struct PreparedLog {
 pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<PreparedLog> {
     cfg.validate()?;
     let reader = open_log2d(log)?;
-    let sensor = match cfg.motion2d.sensor_offset {
-        Some([x, y, th]) => pose2(x, y, th),
-        None => match reader.format() {
-            LogFormat::DpSlam => pose2(DPSLAM_LASER_OFFSET, 0.0, 0.0),
-            LogFormat::Carmen => Pose2::identity(),
-        },
-    };
+    let sensor = sensor_mount(cfg, reader.format());
     let f = &cfg.filter;
     let mut first = None;
     let mut last_odo = Pose2::identity();
@@ -70,11 +52,7 @@ pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<Prepare
         let s = item?;
         let index = index as u32;
         if first.is_none() {
-            max_range = if cfg.laser.max_range > 0.0 {
-                cfg.laser.max_range
-            } else {
-                s.max_range.min(DEFAULT_RANGE_CAP)
-            };
+            max_range = usable_range(cfg, s.max_range);
             first = Some(to_scan(&s, sensor, cfg.laser.max_beams, max_range));
             last_odo = s.odometry;
         } else {
@@ -107,22 +85,9 @@ impl PreparedLog {
     /// A fresh filter with `particles` particles and the first scan in its map
     /// (otherwise configured as `map2d` would be).
     pub fn new_filter(&self, particles: usize) -> ParticleFilter<2, Pose2> {
-        let mut f = self.cfg.filter.clone();
-        f.particles = particles;
-        let motion = Box::new(CdtModel {
-            cfg: self.cfg.motion2d.clone(),
-        });
-        let mut filter = ParticleFilter::new(
-            f,
-            self.laser.clone(),
-            motion,
-            self.cfg.seed,
-            Pose2::identity(),
-            &self.first,
-            0,
-        );
-        filter.set_shared_free_space(self.cfg.map.shared_free_space);
-        filter
+        let mut cfg = self.cfg.clone();
+        cfg.filter.particles = particles;
+        new_filter(&cfg, self.laser.clone(), &self.first, 0)
     }
 
     /// A filter that has already processed the first `warmup` steps.
@@ -166,91 +131,28 @@ pub fn score_particles(
     Scorer::<2, Pose2>::score(scorer, &ctx, &candidates, BeamSubset::ALL, Trace::Full)
 }
 
-/// The map update of one step, as the filter does it (observations in
-/// parallel, then inserted in particle order): every particle gets a child node and its observation of `scan` from pose `pose·delta` (computed
-/// against its own view, free space shared when `shared_free`). Returns the new
-/// nodes, one per particle.
-#[allow(clippy::too_many_arguments)] // the pieces of a filter that the filter keeps private
-pub fn update_map(
-    map: &mut DpMap<2>,
-    tree: &mut AncestryTree<Stamp<Pose2>>,
-    numbering: &Numbering,
-    laser: &LaserModel,
-    particles: &[(NodeId, Pose2)],
-    delta: &Pose2,
-    scan: &Scan<2, Pose2>,
-    shared_free: bool,
-) -> Vec<NodeId> {
-    type Obs = (Vec<(CellKey<2>, f32, f32)>, Vec<(NodeId, CellKey<2>, f32)>);
-    // In parallel and through a map cache per worker, as the filter does.
-    let observations: Vec<Obs> = particles
-        .par_iter()
-        .map_init(ViewCache::new, |cache, &(node, pose)| {
-            let pose = pose.compose(delta);
-            let mut view = map.view(numbering, node);
-            let sensor = pose.compose(&scan.sensor);
-            let origin = sensor.translation();
-            let mut acc: FxHashMap<CellKey<2>, (f32, f32)> = FxHashMap::default();
-            for b in &scan.beams {
-                laser.trace_update(
-                    origin,
-                    sensor.rotate(b.dir),
-                    b.range,
-                    b.no_return,
-                    |k, h, d| {
-                        let e = acc.entry(k).or_insert((0.0, 0.0));
-                        e.0 += h;
-                        e.1 += d;
-                    },
-                );
-            }
-            let prior = laser.prior_distance as f32;
-            let (mut new, mut free) = (Vec::new(), Vec::new());
-            for (k, (h, d)) in acc {
-                match view.entry_cached(cache, k) {
-                    Some(e) if shared_free && e.hits <= 0.0 && h <= 0.0 => {
-                        free.push((e.node, k, d))
-                    }
-                    Some(e) => new.push((k, e.hits + h, e.distance + d)),
-                    None => new.push((k, h, d + prior)),
-                }
-            }
-            (new, free)
-        })
-        .collect();
-    let share = 1.0 / particles.len().max(1) as f32;
-    particles
+/// One sample per particle at its pose moved by `delta`, drawn from the
+/// particles at `parents` (indices into `filter.particles()`).
+pub fn moved_samples(filter: &ParticleFilter<2, Pose2>, parents: &[usize], delta: &Pose2) -> Vec<Sample<Pose2>> {
+    parents
         .iter()
-        .zip(observations)
-        .map(|(&(parent, pose), (new, free))| {
-            let node = tree.add_child(
-                parent,
-                Stamp {
-                    scan: u32::MAX,
-                    pose,
-                },
-            );
-            for (k, h, d) in new {
-                map.insert(node, k, h, d);
-            }
-            for (owner, k, d) in free {
-                map.add_distance(owner, k, d * share);
-            }
-            node
+        .map(|&i| Sample {
+            pose: filter.particles()[i].pose.compose(delta),
+            parent: i,
         })
         .collect()
 }
 
-/// Ancestry maintenance of one step: prune and collapse the tree down to
-/// `held`, mirror the edits in the map, renumber. Returns the tree edits.
-pub fn maintain(
-    tree: &mut AncestryTree<Stamp<Pose2>>,
-    map: &mut DpMap<2>,
-    held: &mut [NodeId],
-    numbering: &mut Numbering,
-) -> Vec<Change> {
-    let changes = tree.maintain(held);
-    map.apply(&changes);
-    tree.number(numbering);
-    changes
+/// The map update of one step, by the filter's own code: every sample becomes
+/// a particle with a new ancestry node holding its observation of `scan`.
+pub fn update_map(filter: &mut ParticleFilter<2, Pose2>, samples: &[Sample<Pose2>], scan: &Scan<2, Pose2>) {
+    let scores = vec![0.0; samples.len()];
+    let chosen: Vec<usize> = (0..samples.len()).collect();
+    filter.update(samples, &scores, &chosen, scan, u32::MAX);
+}
+
+/// Ancestry maintenance of one step, by the filter's own code: prune and
+/// collapse the tree, mirror the edits in the map, renumber.
+pub fn maintain(filter: &mut ParticleFilter<2, Pose2>) {
+    filter.prune();
 }

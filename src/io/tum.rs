@@ -226,8 +226,8 @@ pub struct TumWriter {
 }
 
 impl TumWriter {
-    /// Starts writing the trajectory that will end up at `path`; writes a
-    /// `#` header line naming the fields.
+    /// Starts writing the trajectory that will end up at `path`. No header
+    /// line: tools count on exactly one line per pose.
     pub fn create(path: &Path) -> Result<Self> {
         let name = path
             .file_name()
@@ -237,14 +237,12 @@ impl TumWriter {
         tmp_name.push(format!(".tmp-{}", std::process::id()));
         let tmp = path.with_file_name(tmp_name);
         let file = File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
-        let mut w = Self {
+        Ok(Self {
             path: path.to_path_buf(),
             tmp,
             out: Some(BufWriter::new(file)),
             rows: 0,
-        };
-        w.write_raw(format_args!("# t x y z qx qy qz qw\n"))?;
-        Ok(w)
+        })
     }
 
     fn write_raw(&mut self, args: std::fmt::Arguments<'_>) -> Result<()> {
@@ -489,10 +487,11 @@ mod tests {
         let text = std::fs::read_to_string(&p).unwrap();
         assert!(
             text.lines()
-                .nth(1)
+                .next()
                 .unwrap()
                 .starts_with("1134864629.895182 1.234567891 ")
         );
+        assert_eq!(text.lines().count(), 2, "one line per pose, no header");
         let back = read_tum(&p).unwrap();
         assert_eq!(back.len(), 2);
         assert!((back[0].t - rows[0].0).abs() < 1e-6);

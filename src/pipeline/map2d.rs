@@ -15,10 +15,49 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Hard cap on the default usable range (m): traces cost time linear in range.
-const DEFAULT_RANGE_CAP: f64 = 20.0;
+pub const DEFAULT_RANGE_CAP: f64 = 20.0;
 
 /// The DP-SLAM release's laser mounting for its own log format (m ahead).
-const DPSLAM_LASER_OFFSET: f64 = 0.40;
+pub const DPSLAM_LASER_OFFSET: f64 = 0.40;
+
+/// The laser's pose in the robot frame: the configured offset, else the log
+/// format's default.
+pub fn sensor_mount(cfg: &Config, format: LogFormat) -> Pose2 {
+    match cfg.motion2d.sensor_offset {
+        Some([x, y, th]) => pose2(x, y, th),
+        None => match format {
+            LogFormat::DpSlam => pose2(DPSLAM_LASER_OFFSET, 0.0, 0.0),
+            LogFormat::Carmen => Pose2::identity(),
+        },
+    }
+}
+
+/// The usable range (m) for a log whose sensor limit is `sensor_max`.
+pub fn usable_range(cfg: &Config, sensor_max: f64) -> f64 {
+    if cfg.laser.max_range > 0.0 {
+        cfg.laser.max_range
+    } else {
+        sensor_max.min(DEFAULT_RANGE_CAP)
+    }
+}
+
+/// A filter as `map2d` sets it up: particles at the origin, `first` in the map.
+pub fn new_filter(cfg: &Config, laser: LaserModel, first: &Scan<2, Pose2>, index: u32) -> ParticleFilter<2, Pose2> {
+    let motion = Box::new(CdtModel {
+        cfg: cfg.motion2d.clone(),
+    });
+    let mut filter = ParticleFilter::new(
+        cfg.filter.clone(),
+        laser,
+        motion,
+        cfg.seed,
+        Pose2::identity(),
+        first,
+        index,
+    );
+    filter.set_shared_free_space(cfg.map.shared_free_space);
+    filter
+}
 
 /// What a 2-D run did; written as `run.json`.
 #[derive(Debug, Clone, Serialize)]
@@ -156,36 +195,14 @@ pub fn run_map2d_with(log: &Path, out: &Path, cfg: &Config, backend: crate::back
             last_time = Some(t);
         }
         stamps.push((t, s.odometry));
-        let sensor = match cfg.motion2d.sensor_offset {
-            Some([x, y, th]) => pose2(x, y, th),
-            None => match format {
-                LogFormat::DpSlam => pose2(DPSLAM_LASER_OFFSET, 0.0, 0.0),
-                LogFormat::Carmen => Pose2::identity(),
-            },
-        };
+        let sensor = sensor_mount(cfg, format);
         match (&mut filter, last_processed) {
             (None, _) => {
-                max_range = if cfg.laser.max_range > 0.0 {
-                    cfg.laser.max_range
-                } else {
-                    s.max_range.min(DEFAULT_RANGE_CAP)
-                };
+                max_range = usable_range(cfg, s.max_range);
                 let scan = to_scan(&s, sensor, cfg.laser.max_beams, max_range);
                 beams_per_scan = scan.beams.len();
                 let laser = LaserModel::new(&cfg.laser, cfg.cell_size(), max_range);
-                let motion = Box::new(CdtModel {
-                    cfg: cfg.motion2d.clone(),
-                });
-                let mut filt = ParticleFilter::new(
-                    f.clone(),
-                    laser,
-                    motion,
-                    cfg.seed,
-                    Pose2::identity(),
-                    &scan,
-                    index as u32,
-                );
-                filt.set_shared_free_space(cfg.map.shared_free_space);
+                let mut filt = new_filter(cfg, laser, &scan, index as u32);
                 if let Some(sc) = scorer.take() {
                     filt.set_scorer(sc);
                 }

@@ -354,7 +354,8 @@ pub fn run_map3d_with(
         };
         prev_prior = sweep.prior;
         let best = filter.particles()[filter.best_index()].pose;
-        let guess = best * prior_delta;
+        let mut guess = best * prior_delta;
+        guess.rotation.renormalize();
 
         let t0 = Instant::now();
         let prepared = proposal.prepare(&sweep.points);
@@ -379,11 +380,13 @@ pub fn run_map3d_with(
         t_prop += t0.elapsed().as_secs_f64();
 
         let t1 = Instant::now();
-        let delta = best.inverse() * aligned;
+        let mut delta = best.inverse() * aligned;
+        delta.rotation.renormalize();
         stats.push(filter.step(&delta, &scan, i as u32));
         t_filt += t1.elapsed().as_secs_f64();
         let new_best = filter.particles()[filter.best_index()].pose;
         velocity = best.inverse() * new_best;
+        velocity.rotation.renormalize();
         if debug {
             let show = |p: &Pose3| {
                 let (r, pi, y) = p.rotation.euler_angles();
