@@ -16,7 +16,9 @@
 //! limits the counts (3000 particles cost tens of seconds of set-up).
 
 use criterion::{BatchSize, BenchmarkId, Criterion, criterion_group, criterion_main};
-use dpslam::bench::rig::{PreparedLog, maintain, moved_samples, prepare_log, score_particles, update_map};
+use dpslam::bench::rig::{
+    PreparedLog, maintain, moved_samples, prepare_log, score_particles, update_map,
+};
 use dpslam::config::Config;
 use dpslam::filter::{ParticleFilter, stream};
 use dpslam::geometry::Pose2;

@@ -338,8 +338,14 @@ mod tests {
         assert_eq!(t.lineage(a1), vec![0, 1, 2]);
         check_invariants(&t, &held);
         // Removed-before-merged order for each node id.
-        let pos_b1 = changes.iter().position(|c| *c == Change::Removed(b1)).unwrap();
-        let pos_b = changes.iter().position(|c| *c == Change::Removed(b)).unwrap();
+        let pos_b1 = changes
+            .iter()
+            .position(|c| *c == Change::Removed(b1))
+            .unwrap();
+        let pos_b = changes
+            .iter()
+            .position(|c| *c == Change::Removed(b))
+            .unwrap();
         assert!(pos_b1 < pos_b);
     }
 
@@ -376,7 +382,11 @@ mod tests {
             held = parents.iter().map(|&p| t.add_child(p, g)).collect();
             t.maintain(&mut held);
             check_invariants(&t, &held);
-            assert!(t.len() <= 2 * n, "tree has {} nodes for {n} particles", t.len());
+            assert!(
+                t.len() <= 2 * n,
+                "tree has {} nodes for {n} particles",
+                t.len()
+            );
             // DFS numbering agrees with walking parents.
             t.number(&mut num);
             for &h in &held {

@@ -157,9 +157,9 @@ pub struct MapConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct LaserConfig {
-    /// Variance of the range error, m². The release used 0.017 (σ ≈ 13 cm)
-    /// for its 2003 SICK and robot; we default to 0.005 (σ ≈ 7 cm), which
-    /// measured better on every log we have (docs/DESIGN.md).
+    /// Variance of the range error, m² (release low level: 0.017, σ ≈ 13 cm).
+    /// Smaller values sharpen the likelihood but can lose the track on long
+    /// runs (docs/DESIGN.md).
     pub variance: f64,
     /// Background floor of a beam's likelihood: the chance that something the
     /// model does not explain happened. The release uses `exp(−24/σ²)` in
@@ -253,7 +253,7 @@ impl Default for MapConfig {
 impl Default for LaserConfig {
     fn default() -> Self {
         Self {
-            variance: 0.005,
+            variance: 0.017,
             beam_floor: (-24.0f64 / (0.017 * 35.0 * 35.0)).exp(),
             trace_past_cells: 20.0,
             max_error_cells: 20.0,

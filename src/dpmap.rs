@@ -537,12 +537,22 @@ mod tests {
                 assert!(i < DpMap::<2>::brick_cells());
                 assert!(seen.insert((b, i)));
                 let l = unsplit_local::<2>(i);
-                assert_eq!([(b[0] << 4) + l[0] as i32, (b[1] << 4) + l[1] as i32], [x, y]);
+                assert_eq!(
+                    [(b[0] << 4) + l[0] as i32, (b[1] << 4) + l[1] as i32],
+                    [x, y]
+                );
             }
         }
         let (b, i) = split([-9, 17, 5]);
         let l = unsplit_local::<3>(i);
-        assert_eq!([(b[0] << 3) + l[0] as i32, (b[1] << 3) + l[1] as i32, (b[2] << 3) + l[2] as i32], [-9, 17, 5]);
+        assert_eq!(
+            [
+                (b[0] << 3) + l[0] as i32,
+                (b[1] << 3) + l[1] as i32,
+                (b[2] << 3) + l[2] as i32
+            ],
+            [-9, 17, 5]
+        );
     }
     use crate::ancestry::AncestryTree;
 
@@ -589,7 +599,14 @@ mod tests {
         assert_eq!(t.len(), 1);
         assert_eq!(held, vec![r]);
         assert_eq!(m.entry_count(), 2);
-        assert_eq!(m.cell([0, 0, 0]), &[Entry { node: r, hits: 2.0, distance: 2.0 }]);
+        assert_eq!(
+            m.cell([0, 0, 0]),
+            &[Entry {
+                node: r,
+                hits: 2.0,
+                distance: 2.0
+            }]
+        );
         assert!(m.cell([9, 9, -9]).is_empty());
         let mut num = Numbering::default();
         t.number(&mut num);
@@ -627,7 +644,11 @@ mod tests {
                         continue;
                     }
                     let (h, d) = v.lookup(k).unwrap_or((0.0, 0.0));
-                    assert_eq!(mine.get(&k).copied().unwrap_or((0.0, 0.0)), (h, d), "gen {g}");
+                    assert_eq!(
+                        mine.get(&k).copied().unwrap_or((0.0, 0.0)),
+                        (h, d),
+                        "gen {g}"
+                    );
                     let nv = (h + 1.0, d + g as f32);
                     mine.insert(k, nv);
                     ups.push((k, nv.0, nv.1));
@@ -651,7 +672,11 @@ mod tests {
                 let mut v = m.view(&num, held[p]);
                 for (k, val) in mine {
                     assert_eq!(v.lookup(*k), Some(*val), "gen {g} particle {p}");
-                    assert_eq!(v.lookup_cached(&mut cache, *k), Some(*val), "gen {g} particle {p}");
+                    assert_eq!(
+                        v.lookup_cached(&mut cache, *k),
+                        Some(*val),
+                        "gen {g} particle {p}"
+                    );
                 }
                 for x in -7..7 {
                     let k = [x, x / 2];
@@ -660,6 +685,9 @@ mod tests {
             }
         }
         assert!(t.len() <= 2 * n);
-        assert!(longest > DIRECT_SCAN_MAX, "the cache path was not exercised");
+        assert!(
+            longest > DIRECT_SCAN_MAX,
+            "the cache path was not exercised"
+        );
     }
 }

@@ -19,17 +19,17 @@
 use crate::ancestry::{AncestryTree, NodeId, Numbering};
 use crate::config::{FilterConfig, Resampling};
 use crate::dpmap::{DpMap, ViewCache};
-use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
-use std::sync::{Arc, Mutex};
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
 use crate::motion_model::MotionModel;
 use crate::raycast::CellKey;
 use crate::scan::Scan;
+use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
+use std::sync::{Arc, Mutex};
 
 /// A pose recorded in the ancestry tree: the robot pose (map frame) at input scan `scan`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -273,7 +273,10 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
                 for (&i, s) in alive.iter().zip(partial) {
                     scores[i] += s;
                 }
-                let best = alive.iter().map(|&i| scores[i]).fold(f64::NEG_INFINITY, f64::max);
+                let best = alive
+                    .iter()
+                    .map(|&i| scores[i])
+                    .fold(f64::NEG_INFINITY, f64::max);
                 let threshold = best - self.cfg.cull_threshold;
                 alive.retain(|&i| scores[i] >= threshold);
             }
@@ -311,7 +314,11 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             cumulative.push(acc);
         }
         let mut rng = stream(self.seed, self.steps, RESAMPLE_STREAM);
-        let pick = |u: f64| cumulative.partition_point(|&c| c < u).min(weights.len() - 1);
+        let pick = |u: f64| {
+            cumulative
+                .partition_point(|&c| c < u)
+                .min(weights.len() - 1)
+        };
         let mut chosen: Vec<usize> = match self.cfg.resampling {
             Resampling::Multinomial => (0..n).map(|_| pick(rng.random::<f64>())).collect(),
             Resampling::Systematic => {
@@ -341,8 +348,16 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             .map(|&j| {
                 let s = &samples[j];
                 let mut cache = self.thread_cache();
-                let mut view = self.map.view(&self.numbering, self.particles[s.parent].node);
-                observe(&self.laser, |k| view.entry_cached(&mut cache, k), &s.pose, scan, shared)
+                let mut view = self
+                    .map
+                    .view(&self.numbering, self.particles[s.parent].node);
+                observe(
+                    &self.laser,
+                    |k| view.entry_cached(&mut cache, k),
+                    &s.pose,
+                    scan,
+                    shared,
+                )
             })
             .collect();
         let share = 1.0 / chosen.len() as f32;
@@ -449,11 +464,17 @@ fn observe<const D: usize, P: Pose<D>>(
     let mut acc: FxHashMap<CellKey<D>, (f32, f32)> =
         FxHashMap::with_capacity_and_hasher(scan.beams.len() * 64, Default::default());
     for b in &scan.beams {
-        laser.trace_update(origin, sensor.rotate(b.dir), b.range, b.no_return, |k, h, d| {
-            let e = acc.entry(k).or_insert((0.0, 0.0));
-            e.0 += h;
-            e.1 += d;
-        });
+        laser.trace_update(
+            origin,
+            sensor.rotate(b.dir),
+            b.range,
+            b.no_return,
+            |k, h, d| {
+                let e = acc.entry(k).or_insert((0.0, 0.0));
+                e.0 += h;
+                e.1 += d;
+            },
+        );
     }
     let prior = laser.prior_distance as f32;
     let mut new = Vec::with_capacity(acc.len() / 4);

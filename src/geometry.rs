@@ -5,7 +5,9 @@
 //! [`Pose3`] (`nalgebra::Isometry3<f64>`). A pose maps points from its local
 //! frame (robot or sensor) into the parent frame (map), in metres.
 
-use nalgebra::{Isometry2, Isometry3, Point2, Point3, Translation3, UnitQuaternion, Vector2, Vector3};
+use nalgebra::{
+    Isometry2, Isometry3, Point2, Point3, Translation3, UnitQuaternion, Vector2, Vector3,
+};
 use std::fmt::Debug;
 
 /// 2-D rigid pose: x, y in metres, θ in radians, counter-clockwise.
@@ -83,7 +85,15 @@ impl Pose<2> for Pose2 {
     }
     fn to_tum(&self) -> [f64; 7] {
         let half = self.rotation.angle() / 2.0;
-        [self.translation.x, self.translation.y, 0.0, 0.0, 0.0, half.sin(), half.cos()]
+        [
+            self.translation.x,
+            self.translation.y,
+            0.0,
+            0.0,
+            0.0,
+            half.sin(),
+            half.cos(),
+        ]
     }
     fn from_tum(v: [f64; 7]) -> Self {
         let q = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(v[6], v[3], v[4], v[5]));
@@ -168,7 +178,10 @@ mod tests {
         for a in [-10.0, -3.2, 0.0, 3.2, 7.0, std::f64::consts::PI] {
             let w = wrap_angle(a);
             assert!(w > -std::f64::consts::PI - 1e-12 && w <= std::f64::consts::PI + 1e-12);
-            assert!(((w - a) / std::f64::consts::TAU).fract().abs() < 1e-9 || ((w - a) / std::f64::consts::TAU).fract().abs() > 1.0 - 1e-9);
+            assert!(
+                ((w - a) / std::f64::consts::TAU).fract().abs() < 1e-9
+                    || ((w - a) / std::f64::consts::TAU).fract().abs() > 1.0 - 1e-9
+            );
         }
     }
 }

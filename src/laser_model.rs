@@ -112,7 +112,10 @@ impl LaserModel {
                 range + self.quick_after,
             ),
             (Trace::Full, true) => (0.0, self.max_range),
-            (Trace::Full, false) => (0.0, (range + self.trace_past).min(self.max_range.max(range))),
+            (Trace::Full, false) => (
+                0.0,
+                (range + self.trace_past).min(self.max_range.max(range)),
+            ),
         };
         let two_var = 2.0 * self.variance;
         let mut reach = 1.0f64;
@@ -235,14 +238,24 @@ mod tests {
         let ll = m.beam_log_likelihood(&mut g, [0.05, 0.05], [1.0, 0.0], 10.0, true, Trace::Full);
         assert!((ll - m.floor.ln()).abs() < 1e-9);
         // Quick trace ignores no-return beams.
-        assert_eq!(m.beam_log_likelihood(&mut g, [0.05, 0.05], [1.0, 0.0], 10.0, true, Trace::Quick), 0.0);
+        assert_eq!(
+            m.beam_log_likelihood(&mut g, [0.05, 0.05], [1.0, 0.0], 10.0, true, Trace::Quick),
+            0.0
+        );
     }
 
     #[test]
     fn unknown_space_uses_prior_and_is_below_a_matching_wall() {
         let m = model();
         let mut empty = Grid(FxHashMap::default());
-        let unknown = m.beam_log_likelihood(&mut empty, [0.05, 0.05], [1.0, 0.0], 2.0, false, Trace::Full);
+        let unknown = m.beam_log_likelihood(
+            &mut empty,
+            [0.05, 0.05],
+            [1.0, 0.0],
+            2.0,
+            false,
+            Trace::Full,
+        );
         let mut g = corridor(20, 5.0, 0.1);
         let wall = m.beam_log_likelihood(&mut g, [0.05, 0.05], [1.0, 0.0], 2.0, false, Trace::Full);
         assert!(unknown.is_finite() && unknown < wall);
@@ -259,7 +272,11 @@ mod tests {
         });
         let total: f32 = acc.values().map(|v| v.1).sum();
         assert!((total - 1.0).abs() < 1e-5);
-        let hits: Vec<_> = acc.iter().filter(|(_, v)| v.0 > 0.0).map(|(k, _)| *k).collect();
+        let hits: Vec<_> = acc
+            .iter()
+            .filter(|(_, v)| v.0 > 0.0)
+            .map(|(k, _)| *k)
+            .collect();
         assert_eq!(hits, vec![[10, 0]]);
     }
 }

@@ -13,8 +13,8 @@
 //! counter-clockwise from +x); 3-D poses are `nalgebra::Isometry3<f64>` with z up.
 
 pub mod ancestry;
-pub mod bench;
 pub mod backend;
+pub mod bench;
 pub mod config;
 pub mod dpmap;
 pub mod error;

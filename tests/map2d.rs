@@ -9,7 +9,10 @@ use std::path::{Path, PathBuf};
 
 const SIM_LOG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/sim2d/sim2d.clf");
 const SIM_TRUTH: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/sim2d/truth.tum");
-const LOOP5: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/datasets/dpslam/loop5.log");
+const LOOP5: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../shared/datasets/dpslam/loop5.log"
+);
 
 /// The first `n` lines of a text file, written to `dir`.
 fn prefix(src: &str, n: usize, dir: &Path, name: &str) -> PathBuf {
@@ -32,8 +35,18 @@ fn simulated_prefix_maps_with_all_outputs_and_small_ate() {
     let log = prefix(SIM_LOG, 250, dir.path(), "sim.clf");
     let out = dir.path().join("run");
     let s = run_map2d(&log, &out, &small_config()).unwrap();
-    for f in ["map.png", "map.pgm", "map.yaml", "trajectory.tum", "run.json", "config.toml"] {
-        assert!(out.join(f).metadata().unwrap().len() > 0, "{f} missing or empty");
+    for f in [
+        "map.png",
+        "map.pgm",
+        "map.yaml",
+        "trajectory.tum",
+        "run.json",
+        "config.toml",
+    ] {
+        assert!(
+            out.join(f).metadata().unwrap().len() > 0,
+            "{f} missing or empty"
+        );
     }
     let traj = read_tum(&out.join("trajectory.tum")).unwrap();
     assert_eq!(traj.len(), s.scans, "one trajectory line per input scan");
@@ -43,7 +56,11 @@ fn simulated_prefix_maps_with_all_outputs_and_small_ate() {
     let truth = read_tum(Path::new(SIM_TRUTH)).unwrap();
     let ate = evaluate_ate(&truth, &traj, &AteOptions::default()).unwrap();
     assert_eq!(ate.n, traj.len());
-    assert!(ate.rmse_m < 0.10, "ATE {} m on the simulated prefix", ate.rmse_m);
+    assert!(
+        ate.rmse_m < 0.10,
+        "ATE {} m on the simulated prefix",
+        ate.rmse_m
+    );
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
     assert_eq!(json["particles"], 20);
@@ -70,7 +87,11 @@ fn same_seed_same_trajectory_whatever_the_thread_count() {
     };
     let one = run(1, 7);
     assert_eq!(one, run(3, 7), "1 vs 3 threads differ");
-    assert_ne!(one, run(1, 8), "a different seed should give a different trajectory");
+    assert_ne!(
+        one,
+        run(1, 8),
+        "a different seed should give a different trajectory"
+    );
 }
 
 #[test]
@@ -96,11 +117,18 @@ fn bad_input_fails_with_file_and_line_and_writes_nothing() {
     text.push_str("FLASER 181 1.0 2.0\n");
     std::fs::write(&log, text).unwrap();
     let out = dir.path().join("run");
-    let e = run_map2d(&log, &out, &small_config()).unwrap_err().to_string();
+    let e = run_map2d(&log, &out, &small_config())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("sim.clf") && e.contains("line 41"), "{e}");
-    assert!(!out.exists(), "a failed run must not leave an output folder");
+    assert!(
+        !out.exists(),
+        "a failed run must not leave an output folder"
+    );
     let missing = dir.path().join("nope.clf");
-    let e = run_map2d(&missing, &out, &small_config()).unwrap_err().to_string();
+    let e = run_map2d(&missing, &out, &small_config())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("nope.clf"), "{e}");
     let empty = dir.path().join("empty.clf");
     std::fs::write(&empty, "").unwrap();

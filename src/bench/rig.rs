@@ -133,7 +133,11 @@ pub fn score_particles(
 
 /// One sample per particle at its pose moved by `delta`, drawn from the
 /// particles at `parents` (indices into `filter.particles()`).
-pub fn moved_samples(filter: &ParticleFilter<2, Pose2>, parents: &[usize], delta: &Pose2) -> Vec<Sample<Pose2>> {
+pub fn moved_samples(
+    filter: &ParticleFilter<2, Pose2>,
+    parents: &[usize],
+    delta: &Pose2,
+) -> Vec<Sample<Pose2>> {
     parents
         .iter()
         .map(|&i| Sample {
@@ -145,7 +149,11 @@ pub fn moved_samples(filter: &ParticleFilter<2, Pose2>, parents: &[usize], delta
 
 /// The map update of one step, by the filter's own code: every sample becomes
 /// a particle with a new ancestry node holding its observation of `scan`.
-pub fn update_map(filter: &mut ParticleFilter<2, Pose2>, samples: &[Sample<Pose2>], scan: &Scan<2, Pose2>) {
+pub fn update_map(
+    filter: &mut ParticleFilter<2, Pose2>,
+    samples: &[Sample<Pose2>],
+    scan: &Scan<2, Pose2>,
+) {
     let scores = vec![0.0; samples.len()];
     let chosen: Vec<usize> = (0..samples.len()).collect();
     filter.update(samples, &scores, &chosen, scan, u32::MAX);

@@ -69,7 +69,8 @@ fn open_counted(path: &Path) -> Result<(Box<dyn BufRead + Send>, Arc<AtomicU64>,
 pub fn read_bytes(path: &Path) -> Result<Vec<u8>> {
     let (mut r, _, _) = open_counted(path)?;
     let mut buf = Vec::new();
-    r.read_to_end(&mut buf).map_err(|e| describe_read_error(path, e, None))?;
+    r.read_to_end(&mut buf)
+        .map_err(|e| describe_read_error(path, e, None))?;
     Ok(buf)
 }
 
@@ -205,7 +206,10 @@ mod tests {
             }
         };
         let msg = err.to_string();
-        assert!(msg.contains("cut.log.gz") && msg.contains("truncated"), "{msg}");
+        assert!(
+            msg.contains("cut.log.gz") && msg.contains("truncated"),
+            "{msg}"
+        );
         assert!(read_bytes(&gz).is_err());
     }
 }

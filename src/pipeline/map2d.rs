@@ -42,7 +42,12 @@ pub fn usable_range(cfg: &Config, sensor_max: f64) -> f64 {
 }
 
 /// A filter as `map2d` sets it up: particles at the origin, `first` in the map.
-pub fn new_filter(cfg: &Config, laser: LaserModel, first: &Scan<2, Pose2>, index: u32) -> ParticleFilter<2, Pose2> {
+pub fn new_filter(
+    cfg: &Config,
+    laser: LaserModel,
+    first: &Scan<2, Pose2>,
+    index: u32,
+) -> ParticleFilter<2, Pose2> {
     let motion = Box::new(CdtModel {
         cfg: cfg.motion2d.clone(),
     });
@@ -166,7 +171,12 @@ pub fn run_map2d(log: &Path, out: &Path, cfg: &Config) -> Result<Map2dSummary> {
 }
 
 /// As [`run_map2d`], scoring scans on `backend` (see [`crate::backend::make_scorer`]).
-pub fn run_map2d_with(log: &Path, out: &Path, cfg: &Config, backend: crate::backend::Backend) -> Result<Map2dSummary> {
+pub fn run_map2d_with(
+    log: &Path,
+    out: &Path,
+    cfg: &Config,
+    backend: crate::backend::Backend,
+) -> Result<Map2dSummary> {
     cfg.validate()?;
     let mut scorer = Some(crate::backend::make_scorer::<2, Pose2>(backend)?.0);
     let start = Instant::now();
