@@ -224,7 +224,10 @@ fn trajectory(path: &std::path::Path) -> Vec<(f64, f64, f64)> {
 #[test]
 #[ignore]
 fn map2d_gpu_and_cpu_trajectories_agree_on_mit_csail_prefix() {
-    let src = std::path::Path::new("/work/shared/datasets/carmen/mit-csail/mit-csail.clf");
+    let src = std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../shared/datasets/carmen/mit-csail/mit-csail.clf"
+    ));
     let Ok(text) = std::fs::read_to_string(src) else {
         eprintln!("skipped: {} not found", src.display());
         return;
@@ -261,6 +264,46 @@ fn map2d_gpu_and_cpu_trajectories_agree_on_mit_csail_prefix() {
     let cpu = run(Backend::Cpu);
     let gpu = run(Backend::Gpu);
     assert_eq!(cpu.len(), 300);
+    assert_eq!(cpu.len(), gpu.len());
+    let worst = cpu
+        .iter()
+        .zip(&gpu)
+        .map(|(a, b)| (a.1 - b.1).hypot(a.2 - b.2))
+        .fold(0.0, f64::max);
+    eprintln!("max position difference gpu vs cpu: {worst:.4} m");
+    assert!(worst <= 0.01, "max position difference {worst} m");
+}
+
+/// The 3-D embedded default (`data/sim3d`) mapped on both backends, same
+/// seed: the trajectories must agree within 0.01 m. A few minutes on
+/// lavapipe: run with `--ignored`.
+#[test]
+#[ignore]
+fn map3d_gpu_and_cpu_trajectories_agree_on_the_simulator() {
+    let data = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/data/sim3d"));
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = dpslam::config::Config::default();
+    cfg.filter.particles = dpslam::pipeline::map3d::DEFAULT_PARTICLES_3D;
+    let run = |backend: Backend| {
+        let out = dir.path().join(backend.to_string());
+        let t = std::time::Instant::now();
+        let opts = dpslam::pipeline::map3d::Map3dOptions {
+            points: false,
+            backend,
+        };
+        dpslam::pipeline::map3d::run_map3d_with(
+            &data.join("sweeps"),
+            &out,
+            &cfg,
+            Some(&data.join("odometry.tum")),
+            &opts,
+        )
+        .unwrap();
+        eprintln!("{backend}: {:.1} s", t.elapsed().as_secs_f64());
+        trajectory(&out.join("trajectory.tum"))
+    };
+    let cpu = run(Backend::Cpu);
+    let gpu = run(Backend::Gpu);
     assert_eq!(cpu.len(), gpu.len());
     let worst = cpu
         .iter()

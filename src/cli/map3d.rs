@@ -35,6 +35,9 @@ pub struct Map3dArgs {
     /// Also write points.ply: the raw points registered with the trajectory
     #[arg(long)]
     pub points: bool,
+    /// Where scan likelihoods are computed (gpu needs a build with --features gpu)
+    #[arg(long, value_enum, default_value_t = dpslam::backend::Backend::Cpu)]
+    pub backend: dpslam::backend::Backend,
 }
 
 /// Whether the config file sets `filter.particles` itself (the 3-D default
@@ -63,8 +66,6 @@ pub fn build_config_3d(a: &Map3dArgs) -> dpslam::Result<Config> {
 
 pub fn run(a: Map3dArgs) -> dpslam::Result<()> {
     let cfg = build_config_3d(&a)?;
-    // The scoring backend (`--backend cpu|gpu|auto`) plugs in here, through
-    // `ParticleFilter::set_scorer`, once it exists; the CPU scorer is the default.
     let (input, poses) = match &a.input {
         Some(dir) => (dir.clone(), a.poses.clone()),
         None => {
@@ -76,7 +77,10 @@ pub fn run(a: Map3dArgs) -> dpslam::Result<()> {
             (PathBuf::from(DEFAULT_INPUT), poses)
         }
     };
-    let opts = Map3dOptions { points: a.points };
+    let opts = Map3dOptions {
+        points: a.points,
+        backend: a.backend,
+    };
     let s = run_map3d_with(&input, &a.out, &cfg, poses.as_deref(), &opts)?;
     println!(
         "map3d: {} sweeps, {} particles, {:.0} beams/sweep, {:.2} s/sweep, {:.1} s wall, \

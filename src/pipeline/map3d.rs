@@ -60,6 +60,8 @@ pub const DEFAULT_PARTICLES_3D: usize = 30;
 pub struct Map3dOptions {
     /// Also write `points.ply` (registered raw points).
     pub points: bool,
+    /// Where scan likelihoods are computed.
+    pub backend: crate::backend::Backend,
 }
 
 /// Where the prior motion of the run came from.
@@ -326,6 +328,7 @@ pub fn run_map3d_with(
         0,
     );
     filter.set_shared_free_space(cfg.map.shared_free_space);
+    filter.set_scorer(crate::backend::make_scorer::<3, Pose3>(opts.backend)?.0);
     proposal.push(0, proposal.prepare(&first.points));
     let mut points_per_sweep = vec![first.points.len()];
     let mut beams_per_sweep = vec![scan0.beams.len()];
