@@ -52,6 +52,14 @@ struct Brick {
     cells: Box<[CellList]>,
 }
 
+/// Map versions are unique across all maps of the process, so that a cache
+/// keyed by version can never confuse two maps (e.g. a filter and its clone
+/// after each changed its map).
+fn next_version() -> u64 {
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+    NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+}
+
 /// The shared observation grid.
 #[derive(Debug, Clone)]
 pub struct DpMap<const D: usize> {
@@ -117,7 +125,7 @@ impl<const D: usize> DpMap<D> {
             bricks: FxHashMap::default(),
             index: Vec::new(),
             entries: 0,
-            version: 0,
+            version: next_version(),
         }
     }
 
@@ -141,7 +149,8 @@ impl<const D: usize> DpMap<D> {
         1usize << (brick_bits(D) as usize * D)
     }
 
-    /// Changes whenever the map changes (for caches).
+    /// Changes whenever the map changes, to a value no other map of the
+    /// process has had (for caches).
     pub fn version(&self) -> u64 {
         self.version
     }
@@ -198,7 +207,7 @@ impl<const D: usize> DpMap<D> {
     /// Adds `node`'s observation of cell `k` (one per node and cell; a second
     /// insert for the same pair overwrites the first).
     pub fn insert(&mut self, node: NodeId, k: CellKey<D>, hits: f32, distance: f32) {
-        self.version += 1;
+        self.version = next_version();
         if let Some(&pos) = self.node_index(node).get(&k) {
             let e = &mut self.cell_mut(k)[pos as usize];
             e.hits = hits;
@@ -223,7 +232,7 @@ impl<const D: usize> DpMap<D> {
         let Some(&pos) = self.index.get(node as usize).and_then(|m| m.get(&k)) else {
             return false;
         };
-        self.version += 1;
+        self.version = next_version();
         self.cell_mut(k)[pos as usize].distance += distance;
         true
     }
@@ -246,7 +255,7 @@ impl<const D: usize> DpMap<D> {
 
     /// Mirrors the ancestry tree's edits, in order.
     pub fn apply(&mut self, changes: &[Change]) {
-        self.version += 1;
+        self.version = next_version();
         for c in changes {
             match *c {
                 Change::Removed(n) => self.remove_node(n),
