@@ -6,6 +6,7 @@
 //! the image is the top (largest y); `origin` in the YAML is the map-frame
 //! pose of the lower-left pixel's corner.
 
+use crate::io::atomic::write_atomic;
 use crate::{Error, Result};
 use std::io::Write;
 use std::path::Path;
@@ -47,15 +48,6 @@ impl OccupancyRaster {
         }
         out
     }
-}
-
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension(format!(
-        "{}.tmp",
-        path.extension().and_then(|e| e.to_str()).unwrap_or("")
-    ));
-    std::fs::write(&tmp, bytes).map_err(|e| Error::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
 }
 
 /// Writes `<dir>/<stem>.pgm`, `<stem>.yaml` and `<stem>.png`.

@@ -4,6 +4,7 @@
 //! the line (or byte offset) and the reason. Gzip-compressed inputs are
 //! recognised by their magic bytes, whatever their name.
 
+pub mod atomic;
 pub mod carmen;
 pub mod dpslam_log;
 pub mod log2d;

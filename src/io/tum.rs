@@ -229,13 +229,7 @@ impl TumWriter {
     /// Starts writing the trajectory that will end up at `path`. No header
     /// line: tools count on exactly one line per pose.
     pub fn create(path: &Path) -> Result<Self> {
-        let name = path
-            .file_name()
-            .ok_or_else(|| Error::in_file(path, "not a file name"))?;
-        let mut tmp_name = std::ffi::OsString::from(".");
-        tmp_name.push(name);
-        tmp_name.push(format!(".tmp-{}", std::process::id()));
-        let tmp = path.with_file_name(tmp_name);
+        let tmp = crate::io::atomic::temp_path(path)?;
         let file = File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
         Ok(Self {
             path: path.to_path_buf(),

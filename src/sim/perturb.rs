@@ -273,13 +273,7 @@ enum Sink {
 
 impl AtomicOut {
     fn create(path: &Path) -> Result<Self> {
-        let name = path
-            .file_name()
-            .ok_or_else(|| Error::in_file(path, "not a file name"))?;
-        let mut tmp_name = std::ffi::OsString::from(".");
-        tmp_name.push(name);
-        tmp_name.push(format!(".tmp-{}", std::process::id()));
-        let tmp = path.with_file_name(tmp_name);
+        let tmp = crate::io::atomic::temp_path(path)?;
         let f = BufWriter::new(File::create(&tmp).map_err(|e| Error::io(path, e))?);
         let gz = path
             .extension()

@@ -16,6 +16,7 @@
 //! noise come from two `Pcg64` streams derived from it.
 
 use crate::geometry::{Pose, Pose2, pose2, wrap_angle, xyt};
+use crate::io::atomic::write_atomic;
 use crate::scan::LaserScan2d;
 use crate::sim::path::SmoothPath;
 use crate::{Error, Result};
@@ -24,8 +25,7 @@ use rand_distr::StandardNormal;
 use rand_pcg::Pcg64;
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
-use std::io::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// Range written for a beam with no return (m), as real CARMEN logs of SICK
 /// lasers do: any mapper treats it as "beyond the sensor's limit".
@@ -640,28 +640,6 @@ pub fn write_sim2d_with(
     write_atomic(out, sim.clf_text().as_bytes())?;
     crate::io::tum::write_tum(truth, &sim.tum_rows())?;
     Ok(sim.summary())
-}
-
-/// Writes `bytes` to a temporary file next to `path`, then renames it over `path`.
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let name = path
-        .file_name()
-        .ok_or_else(|| Error::Config(format!("{}: not a file name", path.display())))?;
-    let mut tmp_name = name.to_os_string();
-    tmp_name.push(format!(".tmp{}", std::process::id()));
-    let tmp: PathBuf = path.with_file_name(tmp_name);
-    let written = std::fs::File::create(&tmp).and_then(|mut f| {
-        f.write_all(bytes)?;
-        f.sync_all()
-    });
-    if let Err(e) = written {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(Error::io(&tmp, e));
-    }
-    std::fs::rename(&tmp, path).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        Error::io(path, e)
-    })
 }
 
 #[cfg(test)]

@@ -28,6 +28,7 @@
 
 use crate::eval::ate::{Alignment, AteOptions, evaluate_ate};
 use crate::geometry::Pose3;
+use crate::io::atomic::write_atomic;
 use crate::io::tum::Stamped;
 use crate::sim::path::SmoothPath;
 use crate::{Error, Result};
@@ -39,7 +40,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 use std::io::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// Bytes of one KITTI record: float32 `x y z intensity`.
 pub const KITTI_RECORD: usize = 16;
@@ -1117,30 +1118,6 @@ fn remove_stale_sweeps(dir: &Path, keep: &std::collections::HashSet<String>) -> 
         }
     }
     Ok(())
-}
-
-/// Writes `bytes` to a hidden temporary file next to `path` (so sweep
-/// listings skip it), then renames it over `path`.
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let name = path
-        .file_name()
-        .ok_or_else(|| Error::Config(format!("{}: not a file name", path.display())))?;
-    let mut tmp_name = std::ffi::OsString::from(".");
-    tmp_name.push(name);
-    tmp_name.push(format!(".tmp-{}", std::process::id()));
-    let tmp: PathBuf = path.with_file_name(tmp_name);
-    let written = std::fs::File::create(&tmp).and_then(|mut f| {
-        f.write_all(bytes)?;
-        f.sync_all()
-    });
-    if let Err(e) = written {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(Error::io(&tmp, e));
-    }
-    std::fs::rename(&tmp, path).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        Error::io(path, e)
-    })
 }
 
 #[cfg(test)]
