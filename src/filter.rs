@@ -18,7 +18,7 @@
 
 use crate::ancestry::{AncestryTree, NodeId, Numbering};
 use crate::config::{FilterConfig, Resampling};
-use crate::dpmap::{DpMap, ViewCache};
+use crate::dpmap::DpMap;
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
 use crate::motion_model::MotionModel;
@@ -29,7 +29,7 @@ use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 /// A pose recorded in the ancestry tree: the robot pose (map frame) at input scan `scan`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -122,8 +122,8 @@ pub struct ParticleFilter<const D: usize, P: Pose<D>> {
     shared_free_space: bool,
     /// Computes scan likelihoods (CPU by default).
     scorer: Arc<dyn Scorer<D, P>>,
-    /// One map cache per worker thread (plus one for callers outside the pool).
-    caches: Arc<Vec<Mutex<ViewCache<D>>>>,
+    /// The map update's per-thread map caches (those of a CPU scorer).
+    caches: Arc<CpuScorer<D>>,
 }
 
 impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
@@ -171,11 +171,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             steps: 0,
             shared_free_space: true,
             scorer: Arc::new(CpuScorer::<D>::new()),
-            caches: Arc::new(
-                (0..=rayon::current_num_threads())
-                    .map(|_| Mutex::new(ViewCache::new()))
-                    .collect(),
-            ),
+            caches: Arc::new(CpuScorer::<D>::new()),
         }
     }
 
@@ -293,13 +289,6 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         }
     }
 
-    /// This worker thread's map cache.
-    fn thread_cache(&self) -> std::sync::MutexGuard<'_, ViewCache<D>> {
-        let last = self.caches.len() - 1;
-        let i = rayon::current_thread_index().map_or(last, |i| i.min(last));
-        self.caches[i].lock().unwrap_or_else(|e| e.into_inner())
-    }
-
     /// Resample: indices of the samples that become the next particles,
     /// ascending, drawn by weight `exp(score − best)`.
     pub fn resample(&self, scores: &[f64]) -> Vec<usize> {
@@ -347,7 +336,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             .par_iter()
             .map(|&j| {
                 let s = &samples[j];
-                let mut cache = self.thread_cache();
+                let mut cache = self.caches.thread_cache();
                 let mut view = self
                     .map
                     .view(&self.numbering, self.particles[s.parent].node);
