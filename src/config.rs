@@ -151,6 +151,13 @@ pub struct MapConfig {
     /// hits and newly seen cells are per particle as in the release. `false`
     /// restores the release's every-particle-every-cell update (slower, more memory).
     pub shared_free_space: bool,
+    /// With `shared_free_space`, at most this many of the new particles
+    /// (evenly spread over them) add their path lengths to the shared entries,
+    /// each with weight 1/n. The in-place update is an average over particles
+    /// whose beams cross the same free cells almost identically; a fixed-size
+    /// sample keeps its cost (serial, ~10⁴ cells per particle and scan)
+    /// independent of the particle count. 0 = every particle.
+    pub free_space_particles: usize,
 }
 
 /// Laser penetration model (dissertation ch. 3) and beam selection.
@@ -246,6 +253,7 @@ impl Default for MapConfig {
         Self {
             cells_per_metre: 35.0,
             shared_free_space: true,
+            free_space_particles: 64,
         }
     }
 }

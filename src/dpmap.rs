@@ -22,6 +22,7 @@
 
 use crate::ancestry::{Change, NodeId, Numbering};
 use crate::raycast::CellKey;
+use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 use smallvec::SmallVec;
 
@@ -87,6 +88,14 @@ fn split<const D: usize>(k: CellKey<D>) -> (CellKey<D>, usize) {
         }
     }
     (b, idx)
+}
+
+/// Sort key for bulk edits: cells in the order the map stores them (by brick,
+/// then Morton index inside the brick), so consecutive edits share bricks
+/// and cache lines.
+#[inline]
+pub fn storage_order<const D: usize>(k: CellKey<D>) -> (CellKey<D>, usize) {
+    split(k)
 }
 
 /// Inverse of the in-brick part of [`split`]: local coordinates of index `idx`.
@@ -225,6 +234,36 @@ impl<const D: usize> DpMap<D> {
         self.entries += 1;
     }
 
+    /// Adds the observations of a node that has no entries yet (panics
+    /// otherwise), one per cell: `(cell, hits, distance m)`. Cheaper than [`DpMap::insert`] one by
+    /// one (no lookups of existing entries); best given in [`storage_order`].
+    pub fn insert_fresh(&mut self, node: NodeId, cells: &[(CellKey<D>, f32, f32)]) {
+        assert_eq!(self.node_entries(node), 0, "node {node} is not fresh");
+        self.version = next_version();
+        let mut index = FxHashMap::with_capacity_and_hasher(cells.len(), rustc_hash::FxBuildHasher);
+        for &(k, hits, distance) in cells {
+            match index.entry(k) {
+                std::collections::hash_map::Entry::Occupied(o) => {
+                    // Same contract as `insert`: a second observation overwrites.
+                    let e = &mut self.cell_mut(k)[*o.get() as usize];
+                    e.hits = hits;
+                    e.distance = distance;
+                }
+                std::collections::hash_map::Entry::Vacant(v) => {
+                    let list = self.cell_mut(k);
+                    list.push(Entry {
+                        node,
+                        hits,
+                        distance,
+                    });
+                    v.insert((list.len() - 1) as u32);
+                    self.entries += 1;
+                }
+            }
+        }
+        *self.node_index(node) = index;
+    }
+
     /// Adds `distance` (m) to `node`'s existing entry in cell `k` in place,
     /// for free-space evidence shared by all of the node's descendants.
     /// Returns false if the node has no entry there.
@@ -256,10 +295,95 @@ impl<const D: usize> DpMap<D> {
     /// Mirrors the ancestry tree's edits, in order.
     pub fn apply(&mut self, changes: &[Change]) {
         self.version = next_version();
-        for c in changes {
-            match *c {
-                Change::Removed(n) => self.remove_node(n),
-                Change::Merged { child, into } => self.merge_node(child, into),
+        let mut i = 0;
+        while i < changes.len() {
+            match changes[i] {
+                Change::Removed(_) => {
+                    // A run of removals is one batch: each touched cell is
+                    // compacted once instead of once per dead entry.
+                    let run = changes[i..]
+                        .iter()
+                        .take_while(|c| matches!(c, Change::Removed(_)))
+                        .count();
+                    let dead: Vec<NodeId> = changes[i..i + run]
+                        .iter()
+                        .filter_map(|c| match *c {
+                            Change::Removed(n) => Some(n),
+                            Change::Merged { .. } => None,
+                        })
+                        .collect();
+                    self.remove_nodes(&dead);
+                    i += run;
+                }
+                Change::Merged { child, into } => {
+                    self.merge_node(child, into);
+                    i += 1;
+                }
+            }
+        }
+    }
+
+    /// Removes every entry of the `dead` nodes. Cells are visited once each,
+    /// in storage order; a cell whose list lost at least a quarter of its
+    /// entries is compacted in one pass, others lose their dead entries one
+    /// swap at a time (so that a long list with one dead entry costs O(1)).
+    fn remove_nodes(&mut self, dead: &[NodeId]) {
+        let mut is_dead = vec![false; self.index.len()];
+        let mut cells: Vec<(CellKey<D>, u32)> = Vec::new();
+        for &n in dead {
+            if let Some(m) = self.index.get_mut(n as usize) {
+                is_dead[n as usize] = true;
+                cells.extend(std::mem::take(m));
+            }
+        }
+        cells.par_sort_unstable_by_key(|&(k, pos)| (split(k), pos));
+        let mut moved: Vec<(NodeId, CellKey<D>, u32)> = Vec::new();
+        let mut start = 0;
+        while start < cells.len() {
+            let k = cells[start].0;
+            let end = start + cells[start..].iter().take_while(|c| c.0 == k).count();
+            let removed = end - start;
+            let list = self.cell_mut(k);
+            if removed * 4 >= list.len() {
+                let mut w = 0;
+                for r in 0..list.len() {
+                    let e = list[r];
+                    if is_dead.get(e.node as usize).copied().unwrap_or(false) {
+                        continue;
+                    }
+                    if w != r {
+                        list[w] = e;
+                        moved.push((e.node, k, w as u32));
+                    }
+                    w += 1;
+                }
+                list.truncate(w);
+                if list.spilled() && list.len() * 4 <= list.capacity() {
+                    list.shrink_to_fit();
+                }
+                self.entries -= removed;
+            } else {
+                // Highest position first: a swap never moves a dead entry
+                // that is still to be removed from below its recorded place.
+                for c in (start..end).rev() {
+                    let pos = cells[c].1;
+                    let list = self.cell_mut(k);
+                    list.swap_remove(pos as usize);
+                    if let Some(e) = list.get(pos as usize).copied() {
+                        moved.push((e.node, k, pos));
+                    }
+                    self.entries -= 1;
+                }
+                let list = self.cell_mut(k);
+                if list.spilled() && list.len() * 4 <= list.capacity() {
+                    list.shrink_to_fit();
+                }
+            }
+            start = end;
+        }
+        for (n, k, pos) in moved {
+            if !is_dead[n as usize] {
+                self.index[n as usize].insert(k, pos);
             }
         }
     }
@@ -280,30 +404,19 @@ impl<const D: usize> DpMap<D> {
         }
     }
 
-    fn snapshot(&self, n: NodeId) -> Vec<CellKey<D>> {
-        self.index
-            .get(n as usize)
-            .map(|m| m.keys().copied().collect())
-            .unwrap_or_default()
-    }
-
-    fn remove_node(&mut self, n: NodeId) {
-        for k in self.snapshot(n) {
-            // The index stays live while entries are swapped, so positions stay right.
-            if let Some(pos) = self.index[n as usize].remove(&k) {
-                self.swap_out(k, pos);
-            }
-        }
-        if let Some(m) = self.index.get_mut(n as usize) {
-            *m = FxHashMap::default();
-        }
+    /// Takes node `n`'s index out of the map, in storage order (by brick,
+    /// then Morton index) so that the edits that follow walk memory in order.
+    fn take_index(&mut self, n: NodeId) -> Vec<(CellKey<D>, u32)> {
+        let Some(m) = self.index.get_mut(n as usize) else {
+            return Vec::new();
+        };
+        let mut cells: Vec<(CellKey<D>, u32)> = std::mem::take(m).into_iter().collect();
+        cells.sort_unstable_by_key(|&(k, _)| split(k));
+        cells
     }
 
     fn merge_node(&mut self, child: NodeId, into: NodeId) {
-        for k in self.snapshot(child) {
-            let Some(pc) = self.index[child as usize].remove(&k) else {
-                continue;
-            };
+        for (k, pc) in self.take_index(child) {
             match self.node_index(into).get(&k).copied() {
                 Some(px) => {
                     // The parent's entry takes the child's (newer) values.
@@ -318,9 +431,6 @@ impl<const D: usize> DpMap<D> {
                     self.node_index(into).insert(k, pc);
                 }
             }
-        }
-        if let Some(m) = self.index.get_mut(child as usize) {
-            *m = FxHashMap::default();
         }
     }
 
@@ -366,30 +476,47 @@ impl<const D: usize> DpMap<D> {
     }
 }
 
-/// One breakpoint of a resolved cell: from pre-order index `start` on (until
-/// the next breakpoint) particles see `entry`; `entry.node == NO_NODE`: unknown.
-#[derive(Debug, Clone, Copy)]
-struct Break {
-    start: u32,
-    entry: Entry,
-}
-
 const UNKNOWN: Entry = Entry {
     node: crate::ancestry::NO_NODE,
     hits: 0.0,
     distance: 0.0,
 };
 
+/// Where one resolved cell's breakpoints lie in the cache's arrays, and the
+/// breakpoint the last lookup landed on.
+#[derive(Debug, Clone, Copy)]
+struct Span {
+    first: u32,
+    len: u32,
+    cursor: u32,
+}
+
 /// The per-iteration map cache: cells resolved once for all particles.
 /// Valid for one map version and numbering; one per worker thread.
+///
+/// A resolved cell is a run of breakpoints over the pre-order: from
+/// `starts[i]` on (until the next start) particles see `entries[i]`
+/// (`node == NO_NODE`: unknown). Starts and entries live in separate arrays so
+/// that a search touches only the 4-byte starts. Scorers visit candidates in
+/// pre-order, so each cell keeps a cursor at its last answer: the next
+/// particle's answer is almost always there or a step or two ahead, which
+/// makes a lookup O(1) amortised instead of a binary search over
+/// O(particles) breakpoints (the release's `observationArray` had O(1) by
+/// an array per cell and particle; this keeps O(entries) memory).
 #[derive(Debug, Default)]
 pub struct ViewCache<const D: usize> {
     version: u64,
-    cells: FxHashMap<CellKey<D>, (u32, u32)>,
-    breaks: Vec<Break>,
+    /// Cell → index into `spans`.
+    cells: FxHashMap<CellKey<D>, u32>,
+    spans: Vec<Span>,
+    starts: Vec<u32>,
+    entries: Vec<Entry>,
     scratch: Vec<(u32, u32, Entry)>,
     stack: Vec<(u32, Entry)>,
 }
+
+/// Forward steps tried from the cursor before falling back to a binary search.
+const CURSOR_STEPS: u32 = 4;
 
 impl<const D: usize> ViewCache<D> {
     /// An empty cache.
@@ -404,23 +531,24 @@ impl<const D: usize> ViewCache<D> {
         if self.version != version {
             self.version = version;
             self.cells.clear();
-            self.breaks.clear();
+            self.spans.clear();
+            self.starts.clear();
+            self.entries.clear();
         }
     }
 
-    fn push_break(&mut self, start: u32, entry: Entry) {
-        if let Some(last) = self.breaks.last_mut()
-            && last.start == start
-        {
-            last.entry = entry;
+    fn push_break(&mut self, first: usize, start: u32, entry: Entry) {
+        if self.starts.len() > first && self.starts.last() == Some(&start) {
+            *self.entries.last_mut().expect("parallel arrays") = entry;
             return;
         }
-        self.breaks.push(Break { start, entry });
+        self.starts.push(start);
+        self.entries.push(entry);
     }
 
-    /// Resolves `list` into breakpoints over the pre-order; returns their range.
-    fn build(&mut self, list: &[Entry], enter: &[u32], exit: &[u32]) -> (u32, u32) {
-        let first = self.breaks.len() as u32;
+    /// Resolves `list` into breakpoints over the pre-order.
+    fn build(&mut self, list: &[Entry], enter: &[u32], exit: &[u32]) -> Span {
+        let first = self.starts.len();
         let mut iv = std::mem::take(&mut self.scratch);
         iv.clear();
         iv.extend(list.iter().map(|e| {
@@ -431,7 +559,7 @@ impl<const D: usize> ViewCache<D> {
         iv.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)));
         let mut stack = std::mem::take(&mut self.stack);
         stack.clear();
-        self.push_break(0, UNKNOWN);
+        self.push_break(first, 0, UNKNOWN);
         for &(a, b, e) in &iv {
             while let Some(&(end, _)) = stack.last() {
                 if end >= a {
@@ -439,20 +567,45 @@ impl<const D: usize> ViewCache<D> {
                 }
                 stack.pop();
                 let below = stack.last().map_or(UNKNOWN, |t| t.1);
-                self.push_break(end + 1, below);
+                self.push_break(first, end + 1, below);
             }
             stack.push((b, e));
-            self.push_break(a, e);
+            self.push_break(first, a, e);
         }
         while let Some((end, _)) = stack.pop() {
             let below = stack.last().map_or(UNKNOWN, |t| t.1);
             if end < u32::MAX {
-                self.push_break(end + 1, below);
+                self.push_break(first, end + 1, below);
             }
         }
         self.scratch = iv;
         self.stack = stack;
-        (first, self.breaks.len() as u32 - first)
+        Span {
+            first: first as u32,
+            len: (self.starts.len() - first) as u32,
+            cursor: 0,
+        }
+    }
+
+    /// The entry pre-order index `p` sees in the resolved cell `span`, and the
+    /// breakpoint it was found at.
+    #[inline]
+    fn find(&self, span: Span, p: u32) -> (Entry, u32) {
+        let starts = &self.starts[span.first as usize..(span.first + span.len) as usize];
+        let covers = |i: u32| {
+            starts[i as usize] <= p && starts.get(i as usize + 1).is_none_or(|&next| p < next)
+        };
+        let mut i = span.cursor;
+        let limit = (span.cursor + CURSOR_STEPS).min(span.len - 1);
+        if starts[i as usize] <= p {
+            while i < limit && !covers(i) {
+                i += 1;
+            }
+        }
+        if !covers(i) {
+            i = starts.partition_point(|&s| s <= p) as u32 - 1;
+        }
+        (self.entries[(span.first + i) as usize], i)
     }
 }
 
@@ -510,17 +663,17 @@ impl<'a, const D: usize> MapView<'a, D> {
             return resolve(list, self.enter, self.exit, self.leaf_enter);
         }
         cache.sync(self.map.version);
-        let (first, len) = match cache.cells.get(&k) {
-            Some(&r) => r,
+        let slot = match cache.cells.get(&k) {
+            Some(&slot) => slot as usize,
             None => {
-                let r = cache.build(list, self.enter, self.exit);
-                cache.cells.insert(k, r);
-                r
+                let span = cache.build(list, self.enter, self.exit);
+                cache.spans.push(span);
+                cache.cells.insert(k, (cache.spans.len() - 1) as u32);
+                cache.spans.len() - 1
             }
         };
-        let br = &cache.breaks[first as usize..(first + len) as usize];
-        let i = br.partition_point(|b| b.start <= self.leaf_enter);
-        let e = br[i - 1].entry;
+        let (e, at) = cache.find(cache.spans[slot], self.leaf_enter);
+        cache.spans[slot].cursor = at;
         (e.node != crate::ancestry::NO_NODE).then_some(e)
     }
 }
@@ -667,8 +820,12 @@ mod tests {
             }
             let new_held: Vec<NodeId> = pick.iter().map(|&p| t.add_child(held[p], ())).collect();
             for (node, ups) in new_held.iter().zip(updates) {
-                for (k, h, d) in ups {
-                    m.insert(*node, k, h, d);
+                if g % 2 == 0 {
+                    m.insert_fresh(*node, &ups);
+                } else {
+                    for (k, h, d) in ups {
+                        m.insert(*node, k, h, d);
+                    }
                 }
             }
             held = new_held;
@@ -690,6 +847,20 @@ mod tests {
                 for x in -7..7 {
                     let k = [x, x / 2];
                     assert_eq!(v.lookup_cached(&mut cache, k), v.lookup(k));
+                }
+            }
+            // The cache's cursors must also answer particles visited in
+            // descending pre-order (every cursor moves backwards).
+            let mut slots: Vec<usize> = (0..n).collect();
+            slots.sort_by_key(|&p| std::cmp::Reverse(num.enter[held[p] as usize]));
+            for p in slots {
+                let mut v = m.view(&num, held[p]);
+                for (k, val) in &private[p] {
+                    assert_eq!(
+                        v.lookup_cached(&mut cache, *k),
+                        Some(*val),
+                        "gen {g} particle {p}"
+                    );
                 }
             }
         }

@@ -18,7 +18,7 @@
 
 use crate::ancestry::{AncestryTree, NodeId, Numbering};
 use crate::config::{FilterConfig, Resampling};
-use crate::dpmap::DpMap;
+use crate::dpmap::{DpMap, storage_order};
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
 use crate::motion_model::MotionModel;
@@ -120,6 +120,8 @@ pub struct ParticleFilter<const D: usize, P: Pose<D>> {
     steps: u64,
     /// Share free-space updates of cells all see as free (see `MapConfig`).
     shared_free_space: bool,
+    /// How many new particles contribute to the shared free-space update (0: all).
+    free_space_particles: usize,
     /// Computes scan likelihoods (CPU by default).
     scorer: Arc<dyn Scorer<D, P>>,
     /// The map update's per-thread map caches (those of a CPU scorer).
@@ -147,7 +149,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         let mut numbering = Numbering::default();
         tree.number(&mut numbering);
         let mut view = map.view(&numbering, root);
-        let first = observe(&laser, |k| view.entry(k), &initial, scan, false);
+        let first = observe(&laser, |k| view.entry(k), &initial, scan, false, false);
         for (k, h, d) in first.new {
             map.insert(root, k, h, d);
         }
@@ -170,6 +172,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             seed,
             steps: 0,
             shared_free_space: true,
+            free_space_particles: 0,
             scorer: Arc::new(CpuScorer::<D>::new()),
             caches: Arc::new(CpuScorer::<D>::new()),
         }
@@ -179,6 +182,13 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     /// or the shared free-space update (`true`, the default).
     pub fn set_shared_free_space(&mut self, on: bool) {
         self.shared_free_space = on;
+    }
+
+    /// With the shared free-space update, lets only `n` of the new particles
+    /// (evenly spread over them; 0 = all) contribute their path lengths, each
+    /// with weight 1/n (see `MapConfig::free_space_particles`).
+    pub fn set_free_space_particles(&mut self, n: usize) {
+        self.free_space_particles = n;
     }
 
     /// Replaces the scan scorer (e.g. with the GPU backend).
@@ -332,9 +342,25 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     ) -> usize {
         // Observations are computed against the parents' views before any insert.
         let shared = self.shared_free_space;
-        let observations: Vec<Observation<D>> = chosen
+        let n = chosen.len();
+        let sharers = match self.free_space_particles {
+            0 => n,
+            m => m.min(n),
+        };
+        // Exactly `sharers` of the indices 0..n pass, evenly spread.
+        let shares = |i: usize| (i * sharers) % n < sharers;
+        // Parents in pre-order keep each worker's map cache moving forward
+        // (see `ViewCache`); the observations are stored back in input order.
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by_key(|&i| {
+            let parent = self.particles[samples[chosen[i]].parent].node;
+            self.numbering.enter[parent as usize]
+        });
+        let mut observations: Vec<Option<Observation<D>>> = (0..n).map(|_| None).collect();
+        let observed: Vec<Observation<D>> = order
             .par_iter()
-            .map(|&j| {
+            .map(|&i| {
+                let j = chosen[i];
                 let s = &samples[j];
                 let mut cache = self.caches.thread_cache();
                 let mut view = self
@@ -346,13 +372,18 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
                     &s.pose,
                     scan,
                     shared,
+                    shares(i),
                 )
             })
             .collect();
-        let share = 1.0 / chosen.len() as f32;
+        for (&i, o) in order.iter().zip(observed) {
+            observations[i] = Some(o);
+        }
+        let share = 1.0 / sharers as f32;
         let mut next = Vec::with_capacity(chosen.len());
         let mut best = (f64::NEG_INFINITY, 0);
         for (i, (&j, obs)) in chosen.iter().zip(observations).enumerate() {
+            let obs = obs.expect("every chosen sample observed");
             let s = &samples[j];
             let parent = self.particles[s.parent].node;
             let node = self.tree.add_child(
@@ -362,9 +393,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
                     pose: s.pose,
                 },
             );
-            for (k, h, d) in obs.new {
-                self.map.insert(node, k, h, d);
-            }
+            self.map.insert_fresh(node, &obs.new);
             for (owner, k, d) in obs.free {
                 self.map.add_distance(owner, k, d * share);
             }
@@ -440,13 +469,14 @@ struct Observation<const D: usize> {
 /// and hits of this scan added to what the particle sees (`entry_of`), or to
 /// the prior where it has never seen the cell. With `shared_free`, a cell that
 /// the particle sees as free and this scan only passes through is reported in
-/// `free` instead, to be added in place to the entry it sees.
+/// `free` instead (if `record_free`), to be added in place to the entry it sees.
 fn observe<const D: usize, P: Pose<D>>(
     laser: &LaserModel,
     mut entry_of: impl FnMut(CellKey<D>) -> Option<crate::dpmap::Entry>,
     pose: &P,
     scan: &Scan<D, P>,
     shared_free: bool,
+    record_free: bool,
 ) -> Observation<D> {
     let sensor = pose.compose(&scan.sensor);
     let origin = sensor.translation();
@@ -470,12 +500,18 @@ fn observe<const D: usize, P: Pose<D>>(
     let mut free = Vec::new();
     for (k, (h, d)) in acc {
         match entry_of(k) {
-            Some(e) if shared_free && e.hits <= 0.0 && h <= 0.0 => free.push((e.node, k, d)),
+            Some(e) if shared_free && e.hits <= 0.0 && h <= 0.0 => {
+                if record_free {
+                    free.push((e.node, k, d));
+                }
+            }
             Some(e) => new.push((k, e.hits + h, e.distance + d)),
             None => new.push((k, h, d + prior)),
         }
     }
     // A fresh FxHashMap fed in beam order iterates in the same order on every
     // run and thread, so the map edits (and float sums) are deterministic.
+    // New entries go in storage order: their insertion walks memory in order.
+    new.sort_unstable_by_key(|&(k, _, _)| storage_order(k));
     Observation { new, free }
 }

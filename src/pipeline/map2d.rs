@@ -61,6 +61,7 @@ pub fn new_filter(
         index,
     );
     filter.set_shared_free_space(cfg.map.shared_free_space);
+    filter.set_free_space_particles(cfg.map.free_space_particles);
     filter
 }
 

@@ -328,6 +328,7 @@ pub fn run_map3d_with(
         0,
     );
     filter.set_shared_free_space(cfg.map.shared_free_space);
+    filter.set_free_space_particles(cfg.map.free_space_particles);
     filter.set_scorer(crate::backend::make_scorer::<3, Pose3>(opts.backend)?.0);
     proposal.push(0, proposal.prepare(&first.points));
     let mut points_per_sweep = vec![first.points.len()];
