@@ -476,6 +476,14 @@ impl<const D: usize> DpMap<D> {
     }
 }
 
+/// One breakpoint of a resolved cell (see [`ViewCache`]).
+#[derive(Debug, Clone, Copy)]
+#[repr(C, align(16))]
+struct Break {
+    start: u32,
+    entry: Entry,
+}
+
 const UNKNOWN: Entry = Entry {
     node: crate::ancestry::NO_NODE,
     hits: 0.0,
@@ -495,9 +503,9 @@ struct Span {
 /// Valid for one map version and numbering; one per worker thread.
 ///
 /// A resolved cell is a run of breakpoints over the pre-order: from
-/// `starts[i]` on (until the next start) particles see `entries[i]`
-/// (`node == NO_NODE`: unknown). Starts and entries live in separate arrays so
-/// that a search touches only the 4-byte starts. Scorers visit candidates in
+/// `start` on (until the next breakpoint) particles see `entry`
+/// (`node == NO_NODE`: unknown). A breakpoint is 16 bytes, so the cursor's
+/// breakpoint and the next one share a cache line. Scorers visit candidates in
 /// pre-order, so each cell keeps a cursor at its last answer: the next
 /// particle's answer is almost always there or a step or two ahead, which
 /// makes a lookup O(1) amortised instead of a binary search over
@@ -509,14 +517,10 @@ pub struct ViewCache<const D: usize> {
     /// Cell → index into `spans`.
     cells: FxHashMap<CellKey<D>, u32>,
     spans: Vec<Span>,
-    starts: Vec<u32>,
-    entries: Vec<Entry>,
+    breaks: Vec<Break>,
     scratch: Vec<(u32, u32, Entry)>,
     stack: Vec<(u32, Entry)>,
 }
-
-/// Forward steps tried from the cursor before falling back to a binary search.
-const CURSOR_STEPS: u32 = 4;
 
 impl<const D: usize> ViewCache<D> {
     /// An empty cache.
@@ -532,23 +536,24 @@ impl<const D: usize> ViewCache<D> {
             self.version = version;
             self.cells.clear();
             self.spans.clear();
-            self.starts.clear();
-            self.entries.clear();
+            self.breaks.clear();
         }
     }
 
     fn push_break(&mut self, first: usize, start: u32, entry: Entry) {
-        if self.starts.len() > first && self.starts.last() == Some(&start) {
-            *self.entries.last_mut().expect("parallel arrays") = entry;
+        if self.breaks.len() > first
+            && let Some(last) = self.breaks.last_mut()
+            && last.start == start
+        {
+            last.entry = entry;
             return;
         }
-        self.starts.push(start);
-        self.entries.push(entry);
+        self.breaks.push(Break { start, entry });
     }
 
     /// Resolves `list` into breakpoints over the pre-order.
     fn build(&mut self, list: &[Entry], enter: &[u32], exit: &[u32]) -> Span {
-        let first = self.starts.len();
+        let first = self.breaks.len();
         let mut iv = std::mem::take(&mut self.scratch);
         iv.clear();
         iv.extend(list.iter().map(|e| {
@@ -582,7 +587,7 @@ impl<const D: usize> ViewCache<D> {
         self.stack = stack;
         Span {
             first: first as u32,
-            len: (self.starts.len() - first) as u32,
+            len: (self.breaks.len() - first) as u32,
             cursor: 0,
         }
     }
@@ -591,21 +596,30 @@ impl<const D: usize> ViewCache<D> {
     /// breakpoint it was found at.
     #[inline]
     fn find(&self, span: Span, p: u32) -> (Entry, u32) {
-        let starts = &self.starts[span.first as usize..(span.first + span.len) as usize];
-        let covers = |i: u32| {
-            starts[i as usize] <= p && starts.get(i as usize + 1).is_none_or(|&next| p < next)
+        let br = &self.breaks[span.first as usize..(span.first + span.len) as usize];
+        let c = span.cursor as usize;
+        let i = if br[c].start <= p {
+            // Gallop forward from the cursor: a cell not visited by the last
+            // few particles lags behind by a few breakpoints, rarely more.
+            let mut lo = c;
+            let mut step = 1;
+            let mut hi = loop {
+                let probe = lo + step;
+                if probe >= br.len() {
+                    break br.len();
+                }
+                if br[probe].start > p {
+                    break probe;
+                }
+                lo = probe;
+                step *= 2;
+            };
+            hi = hi.max(lo + 1);
+            lo + br[lo..hi].partition_point(|b| b.start <= p) - 1
+        } else {
+            br[..c].partition_point(|b| b.start <= p) - 1
         };
-        let mut i = span.cursor;
-        let limit = (span.cursor + CURSOR_STEPS).min(span.len - 1);
-        if starts[i as usize] <= p {
-            while i < limit && !covers(i) {
-                i += 1;
-            }
-        }
-        if !covers(i) {
-            i = starts.partition_point(|&s| s <= p) as u32 - 1;
-        }
-        (self.entries[(span.first + i) as usize], i)
+        (br[i].entry, i as u32)
     }
 }
 

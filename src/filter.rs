@@ -24,7 +24,7 @@ use crate::laser_model::{LaserModel, Trace};
 use crate::motion_model::MotionModel;
 use crate::raycast::CellKey;
 use crate::scan::Scan;
-use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
+use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer, contiguous_run};
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
@@ -359,6 +359,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         let mut observations: Vec<Option<Observation<D>>> = (0..n).map(|_| None).collect();
         let observed: Vec<Observation<D>> = order
             .par_iter()
+            .with_min_len(contiguous_run(order.len()))
             .map(|&i| {
                 let j = chosen[i];
                 let s = &samples[j];
