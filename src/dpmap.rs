@@ -561,7 +561,9 @@ impl<const D: usize> ViewCache<D> {
             (enter[n], exit[n], *e)
         }));
         // Laminar intervals: sorting by (start, −end) visits them in tree order.
-        iv.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)));
+        // Stable sort: lists are appended in particle order, which is nearly
+        // pre-order, and the stable sort runs in O(n) on such presorted runs.
+        iv.sort_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)));
         let mut stack = std::mem::take(&mut self.stack);
         stack.clear();
         self.push_break(first, 0, UNKNOWN);

@@ -1,0 +1,56 @@
+//! Filter-level behaviour on the shipped simulated log.
+
+use dpslam::bench::rig::prepare_log;
+use dpslam::config::Config;
+use std::path::Path;
+
+/// Free path length (m) held by the tree root's entries: where the shared
+/// free-space update of the first step lands (every particle's parent is the root).
+fn root_free_path(filter: &dpslam::filter::ParticleFilter<2, dpslam::geometry::Pose2>) -> f64 {
+    let root = filter.tree().root();
+    let mut total = 0.0;
+    filter.map().for_each_cell(|_, list| {
+        for e in list.iter().filter(|e| e.node == root && e.hits <= 0.0) {
+            total += e.distance as f64;
+        }
+    });
+    total
+}
+
+#[test]
+fn a_sample_of_particles_estimates_the_shared_free_space_update() {
+    let log = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sim2d/sim2d.clf");
+    let cfg = Config::default();
+    // One step: both filters weigh and resample on the same map, so only
+    // the in-place free-space sums can differ.
+    let prepared = prepare_log(&log, &cfg, 1).unwrap();
+    let particles = 200;
+    let mut totals = Vec::new();
+    let mut entries = Vec::new();
+    for sharers in [0, 64] {
+        let mut f = prepared.new_filter(particles);
+        f.set_free_space_particles(sharers);
+        let before = root_free_path(&f);
+        for s in &prepared.steps {
+            f.step(&s.delta, &s.scan, s.index);
+        }
+        totals.push(root_free_path(&f) - before);
+        entries.push(f.map().entry_count());
+    }
+    // The sample of 64 carries weight 1/64 each: the same free path length in
+    // expectation as all 200 at 1/200 (a wrong weight would be off by 3×).
+    let rel = (totals[1] - totals[0]).abs() / totals[0];
+    assert!(
+        rel < 0.01,
+        "free path {:.1} m (64) vs {:.1} m (all): {rel}",
+        totals[1],
+        totals[0]
+    );
+    // Sampling only changes in-place sums, never which entries exist.
+    assert!(
+        totals[0] > 1.0,
+        "no shared free-space update: {}",
+        totals[0]
+    );
+    assert_eq!(entries[0], entries[1]);
+}
