@@ -277,6 +277,12 @@ fn map2d_gpu_and_cpu_trajectories_agree_on_mit_csail_prefix() {
 /// The 3-D embedded default (`data/sim3d`) mapped on both backends, same
 /// seed: the trajectories must agree within 0.01 m. A few minutes on
 /// lavapipe: run with `--ignored`.
+///
+/// Known to fail (0.22 m): at sweep 19 one multinomial resampling draw lands
+/// 1.7e-5 from a cumulative-weight boundary, which an 8e-5 nats relative
+/// score change moves, below the f32 scores' spread of 2.4e-4 nats between
+/// samples there. Scores, culling and best samples agree in every step; see
+/// docs/GPU.md ("3-D end to end").
 #[test]
 #[ignore]
 fn map3d_gpu_and_cpu_trajectories_agree_on_the_simulator() {
