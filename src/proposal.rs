@@ -35,6 +35,12 @@ const LINEARITY: f64 = 0.05;
 const MIN_NORMAL_NEIGHBOURS: usize = 5;
 /// ICP stops a level when the update is below this (rad and m).
 const CONVERGED: f64 = 1e-5;
+/// Cauchy scale in units of the residual std for 95 % asymptotic efficiency
+/// under Gaussian noise (Holland & Welsch 1977).
+const CAUCHY_95: f64 = 2.385;
+/// Smallest Cauchy scale, m: about a lidar's range noise, so that exact
+/// synthetic data (residual spread → 0) keeps a usable weight.
+const MIN_SCALE: f64 = 0.01;
 
 /// Parameters of the proposal, from [`Map3dConfig`].
 #[derive(Debug, Clone, PartialEq)]
@@ -258,6 +264,9 @@ pub struct Alignment {
     pub rms: f64,
     /// Gauss-Newton iterations over all levels.
     pub iterations: usize,
+    /// Covariance of the aligned pose as a right (body-frame) perturbation
+    /// `pose · exp([ω, t])`, ω in rad and t in m, sensor frame.
+    pub covariance: Matrix6<f64>,
 }
 
 /// `exp` of a twist `[ω, t]` applied on the left: rotation by the small-angle
@@ -267,6 +276,20 @@ fn left_update(pose: &Pose3, xi: &Vector6<f64>) -> Pose3 {
     let t = Vector3::new(xi[3], xi[4], xi[5]);
     let step = Pose3::from_parts(Translation3::from(t), UnitQuaternion::from_scaled_axis(w));
     step * pose
+}
+
+/// The matrix taking a left (map-frame) twist `[ω, t]` at `pose` to the
+/// equal right (body-frame) twist: `exp(ξ)·T = T·exp(A·ξ)` to first order,
+/// `A = [[Rᵀ, 0], [−Rᵀ[p]×, Rᵀ]]` for `T = (R, p)`.
+fn body_adjoint(pose: &Pose3) -> Matrix6<f64> {
+    let rt = pose.rotation.to_rotation_matrix().into_inner().transpose();
+    let p = pose.translation.vector;
+    let mut a = Matrix6::zeros();
+    a.fixed_view_mut::<3, 3>(0, 0).copy_from(&rt);
+    a.fixed_view_mut::<3, 3>(3, 3).copy_from(&rt);
+    a.fixed_view_mut::<3, 3>(3, 0)
+        .copy_from(&(-rt * p.cross_matrix()));
+    a
 }
 
 /// Aligns `source` (sensor-frame points, m) to `map` starting from `initial`
@@ -281,16 +304,28 @@ pub fn align(
     let mut pose = *initial;
     let mut iterations = 0;
     let mut last = (0usize, 0.0f64);
+    let mut info = Matrix6::<f64>::zeros();
     for level in &map.levels {
         let src = thin(
             &voxel_downsample(source.iter().copied(), level.voxel),
             params.max_points,
         );
-        // Residual scale of the robust (Cauchy) weight: wide at the first
-        // iterations of a coarse level, down to the level's voxel.
+        let mut sigma: Option<f64> = None;
         for it in 0..params.iterations {
             iterations += 1;
-            let scale = (level.radius / (1.0 + it as f64)).max(level.voxel);
+            // Residual scale of the robust (Cauchy) weight: the level's
+            // radius, annealed, at the first iterations; from the second on
+            // at most the spread of the last residuals, 2.385·σ̂ with σ̂ =
+            // 1.4826·median|r| (the Cauchy constant of 95 % efficiency under
+            // Gaussian noise, and a spread that outliers do not inflate).
+            // A fixed floor such as the voxel size gives mis-matched points
+            // (edges, clutter) near-full weight once the residuals of the
+            // true matches are centimetres, and biases the pose by as much.
+            let anneal = level.radius / (1.0 + it as f64);
+            let scale = match sigma {
+                Some(s) => anneal.min((CAUCHY_95 * s).max(MIN_SCALE)),
+                None => anneal,
+            };
             let terms: Vec<Option<(Vector6<f64>, f64, f64)>> = src
                 .par_iter()
                 .map(|p| {
@@ -309,7 +344,9 @@ pub fn align(
             let mut g = Vector6::<f64>::zeros();
             let mut count = 0usize;
             let mut sq = 0.0;
+            let mut abs_r: Vec<f64> = Vec::with_capacity(src.len());
             for (row, r, w) in terms.into_iter().flatten() {
+                abs_r.push(r.abs());
                 h += row * row.transpose() * w;
                 g += row * (w * r);
                 count += 1;
@@ -319,6 +356,13 @@ pub fn align(
                 return None;
             }
             last = (count, (sq / count as f64).sqrt());
+            let mid = abs_r.len() / 2;
+            let med = *abs_r.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+            let s = (1.4826 * med).max(MIN_SCALE / CAUCHY_95);
+            sigma = Some(s);
+            // Information of the pose: the Gauss-Newton normal matrix over
+            // the residual variance (before damping).
+            info = h / (s * s);
             // Light damping keeps directions without planes (a corridor's
             // axis) from jumping.
             let damping = 1e-6 * h.trace().max(1e-12);
@@ -332,11 +376,19 @@ pub fn align(
             }
         }
     }
+    // A weak prior (1 m, 1 rad per axis) keeps the inverse finite where the
+    // sweep leaves the pose free (a lone plane, a corridor's axis): there the
+    // covariance is ~1 and fusion leaves the motion noise in charge.
+    let cov_map = (info + Matrix6::identity())
+        .try_inverse()
+        .unwrap_or_else(Matrix6::identity);
+    let a = body_adjoint(&pose);
     Some(Alignment {
         pose,
         inliers: last.0,
         rms: last.1,
         iterations,
+        covariance: a * cov_map * a.transpose(),
     })
 }
 
@@ -470,6 +522,52 @@ mod tests {
         assert!(e.translation.vector.norm() < 0.02, "{e:?}");
         assert!(e.rotation.angle() < 0.3f64.to_radians(), "{e:?}");
         assert!(got.inliers > 500);
+    }
+
+    /// The covariance is small where the sweep constrains the pose and large
+    /// where it does not: on a lone floor, x, y and yaw are free.
+    #[test]
+    fn covariance_follows_what_the_geometry_constrains() {
+        let params = ProposalParams::from_config(&Map3dConfig::default());
+        let floor = |sensor: &Pose3| -> Vec<Vector3<f64>> {
+            let mut v = Vec::new();
+            for i in -60..=60 {
+                for j in -60..=60 {
+                    let p = Vector3::new(i as f64 * 0.1, j as f64 * 0.1, -1.0);
+                    v.push((sensor.inverse() * nalgebra::Point3::from(p)).coords);
+                }
+            }
+            v
+        };
+        let truth = Pose3::new(Vector3::new(0.3, 0.0, 0.0), Vector3::zeros());
+        let map = LocalMap::build(
+            &[(Pose3::identity(), &floor(&Pose3::identity())[..])],
+            &params,
+        );
+        let got = align(&map, &floor(&truth), &truth, &params).expect("aligned");
+        let c = got.covariance;
+        // [ωx, ωy, ωz, tx, ty, tz]: roll, pitch and height are fixed by the
+        // plane to well under a millimetre / a hundredth of a degree ...
+        for k in [0, 1, 5] {
+            assert!(c[(k, k)].sqrt() < 1e-3, "{k}: {}", c[(k, k)].sqrt());
+        }
+        // ... yaw, x and y not at all.
+        for k in [2, 3, 4] {
+            assert!(c[(k, k)].sqrt() > 0.1, "{k}: {}", c[(k, k)].sqrt());
+        }
+
+        // In the room everything is constrained, to millimetres.
+        let mut prop = Proposal::new(params);
+        let a = prop.prepare(&to_f32(&room_points(&Pose3::identity())));
+        prop.push(0, a);
+        let b = prop.prepare(&to_f32(&room_points(&truth)));
+        let got = prop
+            .align(&b, &truth, |_| Some(Pose3::identity()))
+            .expect("aligned");
+        for k in 0..6 {
+            let s = got.covariance[(k, k)].sqrt();
+            assert!(s > 0.0 && s < 0.005, "{k}: {s}");
+        }
     }
 
     #[test]

@@ -269,3 +269,31 @@ fn pose_file_with_wrong_length_is_an_error() {
         "{e}"
     );
 }
+
+/// The shipped simulated sequence (40 sweeps, odometry-only ATE 1.85 m) with
+/// its odometry as prior and the default 3-D particle count: SE(3) ATE at
+/// most 5 cm and mean rotation error at most 0.5°.
+#[test]
+fn shipped_simulated_sequence_is_mapped_to_centimetres() {
+    use dpslam::eval::ate::{Alignment, AteOptions, evaluate_ate};
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sim3d");
+    let out = tempfile::tempdir().unwrap();
+    let cfg = config(dpslam::pipeline::map3d::DEFAULT_PARTICLES_3D);
+    run_map3d(
+        &dir.join("sweeps"),
+        out.path(),
+        &cfg,
+        Some(&dir.join("odometry.tum")),
+    )
+    .unwrap();
+    let truth = read_tum(&dir.join("truth.tum")).unwrap();
+    let est = read_tum(&out.path().join("trajectory.tum")).unwrap();
+    let opts = AteOptions {
+        alignment: Alignment::Se3,
+        ..AteOptions::default()
+    };
+    let r = evaluate_ate(&truth, &est, &opts).unwrap();
+    eprintln!("sim3d: {r}");
+    assert_eq!(r.n, 40);
+    assert!(r.rmse_m <= 0.05 && r.rot_mean_deg <= 0.5, "{r}");
+}

@@ -14,7 +14,10 @@
 //! 3. the proposal ([`crate::proposal`]) aligns the sweep to the best
 //!    particle's recent sweeps starting from `best · prior`, and the filter
 //!    samples around the aligned pose: `delta = best⁻¹ · aligned` goes to
-//!    [`ParticleFilter::step`] with the 6-DoF [`Gaussian6dModel`];
+//!    [`ParticleFilter::step`] with the [`AlignedGaussian6dModel`], which
+//!    draws from the product of the alignment's Gaussian (covariance
+//!    × `map3d.icp_covariance_scale`) and the 6-DoF [`Gaussian6dModel`]
+//!    (the motion model alone when the alignment failed);
 //! 4. the particles are weighed with the penetration model on the voxel
 //!    DP-map (`map3d.voxel_size` = 0.2 m, σ² = `map3d.variance`), resampled,
 //!    and their maps updated — the same generic filter as 2-D.
@@ -38,7 +41,7 @@ use crate::io::ply::{VoxelPoint, write_points_ply, write_voxel_ply};
 use crate::io::sweeps::{list_sweeps, read_sweep};
 use crate::io::tum::{read_poses, write_tum};
 use crate::laser_model::LaserModel;
-use crate::motion_model::Gaussian6dModel;
+use crate::motion_model::{AlignedGaussian6dModel, Gaussian6dModel, ProposalNoise};
 use crate::proposal::{Proposal, ProposalParams};
 use crate::raycast::cell_centre;
 use crate::scan::{Beam, Scan};
@@ -51,9 +54,12 @@ use std::time::Instant;
 
 /// Particles of a 3-D run when neither the command line nor a config file
 /// sets them: 3-D steps cost ~10× a 2-D step per particle (3000 beams through
-/// voxels), and with the aligned proposal 30 particles already cover the
-/// remaining pose uncertainty.
-pub const DEFAULT_PARTICLES_3D: usize = 30;
+/// voxels). The proposal samples from the scan matcher's Gaussian fused with
+/// the motion noise, so the samples lie within the matcher's uncertainty and
+/// most of them survive culling: a step costs about particles × samples full
+/// traces. On three simulated sequences (seeds 1–3) 20 particles were as
+/// accurate as 30 (ATE 6–11 mm) at two thirds of the time.
+pub const DEFAULT_PARTICLES_3D: usize = 20;
 
 /// Options of a 3-D run beyond the configuration.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -166,6 +172,9 @@ pub fn validate_map3d(m: &Map3dConfig) -> Result<()> {
     }
     if !nonneg(m.occupied_density) {
         return bad("occupied_density must be ≥ 0");
+    }
+    if !nonneg(m.icp_covariance_scale) {
+        return bad("icp_covariance_scale must be ≥ 0");
     }
     let noise = [
         m.trans_std_per_m,
@@ -318,10 +327,15 @@ pub fn run_map3d_with(
         (None, Some(p)) => p,
         (None, None) => Pose3::identity(),
     };
+    let motion = Gaussian6dModel::from_config(m);
+    let noise = ProposalNoise::default();
     let mut filter = ParticleFilter::new(
         cfg.filter.clone(),
         laser,
-        Box::new(Gaussian6dModel::from_config(m)),
+        Box::new(AlignedGaussian6dModel {
+            base: motion.clone(),
+            noise: noise.clone(),
+        }),
         cfg.seed,
         initial,
         &scan0,
@@ -371,7 +385,8 @@ pub fn run_map3d_with(
             .take_while(|s| s.scan >= oldest)
             .map(|s| (s.scan, s.pose))
             .collect();
-        let aligned = match proposal.align(&prepared, &guess, |j| recent.get(&j).copied()) {
+        let alignment = proposal.align(&prepared, &guess, |j| recent.get(&j).copied());
+        let aligned = match &alignment {
             Some(a) => a.pose,
             None => {
                 fallbacks += 1;
@@ -386,6 +401,13 @@ pub fn run_map3d_with(
         let t1 = Instant::now();
         let mut delta = best.inverse() * aligned;
         delta.rotation.renormalize();
+        // Sample from the scan matcher's Gaussian fused with the motion
+        // noise (see AlignedGaussian6dModel); without an alignment, or with
+        // the fusion switched off, the motion noise alone.
+        let fused = alignment
+            .filter(|_| m.icp_covariance_scale > 0.0)
+            .and_then(|a| motion.fuse(&delta, &(a.covariance * m.icp_covariance_scale)));
+        noise.set(fused.as_ref());
         stats.push(filter.step(&delta, &scan, i as u32));
         t_filt += t1.elapsed().as_secs_f64();
         let new_best = filter.particles()[filter.best_index()].pose;
