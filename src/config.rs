@@ -307,17 +307,45 @@ impl Default for Motion2dConfig {
     }
 }
 
+/// Parses a TOML file into `T`. Syntax errors, wrong types and unknown keys
+/// (where `T` denies them) name the file and the line.
+pub fn read_toml<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    toml::from_str(&text).map_err(|e| {
+        let reason = e.message().to_string();
+        match e.span() {
+            Some(span) => {
+                let line = text[..span.start.min(text.len())].matches('\n').count() + 1;
+                Error::at_line(path, line, reason)
+            }
+            None => Error::in_file(path, reason),
+        }
+    })
+}
+
+/// Checks that every `(name, value)` is finite and positive, or (with
+/// `zero_ok`) finite and ≥ 0; the error names `what` and the field.
+pub fn check_values(what: &str, values: &[(&str, f64)], zero_ok: bool) -> Result<()> {
+    for &(name, v) in values {
+        let ok = v.is_finite() && if zero_ok { v >= 0.0 } else { v > 0.0 };
+        if !ok {
+            let need = if zero_ok {
+                "≥ 0 and finite"
+            } else {
+                "positive and finite"
+            };
+            return Err(Error::Config(format!(
+                "{what}: {name} must be {need}, got {v}"
+            )));
+        }
+    }
+    Ok(())
+}
+
 impl Config {
     /// Reads a TOML file; unknown keys are errors (typos must not pass silently).
     pub fn from_toml_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let cfg: Config = toml::from_str(&text).map_err(|e| {
-            let line = e
-                .span()
-                .map(|s| text[..s.start].matches('\n').count() + 1)
-                .unwrap_or(0);
-            Error::at_line(path, line, e.message().to_string())
-        })?;
+        let cfg: Config = read_toml(path)?;
         cfg.validate()?;
         Ok(cfg)
     }

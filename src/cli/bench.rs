@@ -98,7 +98,12 @@ pub struct AccuracyArgs {
 
 fn run_accuracy(a: AccuracyArgs) -> dpslam::Result<()> {
     use dpslam::bench::accuracy::{AccuracyOptions, run_accuracy};
-    let cfg = super::map2d::build_config(a.config.as_ref(), a.particles, None, a.threads)?;
+    let run = super::map2d::RunArgs {
+        seed: None,
+        config: a.config.clone(),
+        threads: a.threads,
+    };
+    let cfg = super::map2d::build_config(&run, a.particles)?;
     let mut opts = AccuracyOptions::new(cfg);
     opts.quick = a.quick;
     opts.only = a.only;
@@ -152,7 +157,12 @@ pub struct ScalingArgs {
 
 fn run_scaling(a: ScalingArgs) -> dpslam::Result<()> {
     use dpslam::bench::scaling::{ScalingOptions, run_scaling, write_scaling_plot};
-    let cfg = super::map2d::build_config(a.config.as_ref(), None, None, a.threads)?;
+    let run = super::map2d::RunArgs {
+        seed: None,
+        config: a.config.clone(),
+        threads: a.threads,
+    };
+    let cfg = super::map2d::build_config(&run, None)?;
     let opts = ScalingOptions {
         log: a.log.unwrap_or_else(|| super::map2d::DEFAULT_LOG.into()),
         particles: a.particles,

@@ -16,6 +16,16 @@ pub struct Map2dArgs {
     /// Particles [default: 50, or the config file's]
     #[arg(long)]
     pub particles: Option<usize>,
+    #[command(flatten)]
+    pub run: RunArgs,
+    /// Where scan likelihoods are computed (gpu needs a build with `--features gpu` and a Vulkan driver; auto falls back to cpu)
+    #[arg(long, value_enum, default_value_t = dpslam::backend::Backend::Cpu)]
+    pub backend: dpslam::backend::Backend,
+}
+
+/// Flags every mapping command shares.
+#[derive(clap::Args, Debug)]
+pub struct RunArgs {
     /// Random seed [default: 1, or the config file's]
     #[arg(long)]
     pub seed: Option<u64>,
@@ -25,18 +35,11 @@ pub struct Map2dArgs {
     /// Worker threads (0 = all cores)
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Where scan likelihoods are computed (gpu needs a build with `--features gpu` and a Vulkan driver; auto falls back to cpu)
-    #[arg(long, value_enum, default_value_t = dpslam::backend::Backend::Cpu)]
-    pub backend: dpslam::backend::Backend,
 }
 
 /// Loads the config file (if any) and applies the flags over it.
-pub fn build_config(
-    file: Option<&PathBuf>,
-    particles: Option<usize>,
-    seed: Option<u64>,
-    threads: Option<usize>,
-) -> dpslam::Result<Config> {
+pub fn build_config(run: &RunArgs, particles: Option<usize>) -> dpslam::Result<Config> {
+    let (file, seed, threads) = (run.config.as_ref(), run.seed, run.threads);
     let mut cfg = match file {
         Some(p) => Config::from_toml_file(p)?,
         None => Config::default(),
@@ -61,7 +64,7 @@ pub fn build_config(
 }
 
 pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
-    let cfg = build_config(a.config.as_ref(), a.particles, a.seed, a.threads)?;
+    let cfg = build_config(&a.run, a.particles)?;
     let log = a.log.unwrap_or_else(|| PathBuf::from(DEFAULT_LOG));
     let s = dpslam::pipeline::map2d::run_map2d_with(&log, &a.out, &cfg, a.backend)?;
     println!(

@@ -20,18 +20,11 @@ pub struct Map3dArgs {
     /// Prior poses, one per sweep (TUM `t x y z qx qy qz qw` or KITTI 3×4)
     #[arg(long)]
     pub poses: Option<PathBuf>,
-    /// Particles [default: 30, or the config file's `filter.particles`]
+    /// Particles [default: 20, or the config file's `filter.particles`]
     #[arg(long)]
     pub particles: Option<usize>,
-    /// Random seed [default: 1, or the config file's]
-    #[arg(long)]
-    pub seed: Option<u64>,
-    /// Configuration file (TOML; see docs/CONFIG.md)
-    #[arg(long)]
-    pub config: Option<PathBuf>,
-    /// Worker threads (0 = all cores)
-    #[arg(long)]
-    pub threads: Option<usize>,
+    #[command(flatten)]
+    pub run: super::map2d::RunArgs,
     /// Also write points.ply: the raw points registered with the trajectory
     #[arg(long)]
     pub points: bool,
@@ -57,8 +50,8 @@ fn file_sets_particles(file: Option<&PathBuf>) -> dpslam::Result<bool> {
 /// The configuration of a 3-D run: file, then flags, then the 3-D default
 /// particle count where neither set one.
 pub fn build_config_3d(a: &Map3dArgs) -> dpslam::Result<Config> {
-    let mut cfg = super::map2d::build_config(a.config.as_ref(), a.particles, a.seed, a.threads)?;
-    if a.particles.is_none() && !file_sets_particles(a.config.as_ref())? {
+    let mut cfg = super::map2d::build_config(&a.run, a.particles)?;
+    if a.particles.is_none() && !file_sets_particles(a.run.config.as_ref())? {
         cfg.filter.particles = DEFAULT_PARTICLES_3D;
     }
     Ok(cfg)

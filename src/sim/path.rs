@@ -167,3 +167,14 @@ impl SmoothPath {
             .collect()
     }
 }
+
+/// Why `waypoints` cannot make a path (fewer than two, or not finite), if so.
+pub fn waypoint_problem(waypoints: &[[f64; 2]]) -> Option<String> {
+    if waypoints.len() < 2 {
+        return Some("at least two waypoints are needed".into());
+    }
+    waypoints
+        .iter()
+        .find(|w| !(w[0].is_finite() && w[1].is_finite()))
+        .map(|w| format!("waypoint {w:?} is not finite"))
+}

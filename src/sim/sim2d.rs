@@ -327,17 +327,7 @@ impl Sim2dConfig {
     /// Reads a configuration from a TOML file; absent fields keep their
     /// defaults. Syntax errors and unknown fields name the file and line.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let cfg: Sim2dConfig = toml::from_str(&text).map_err(|e| {
-            let reason = e.message().to_string();
-            match e.span() {
-                Some(span) => {
-                    let line = text[..span.start.min(text.len())].matches('\n').count() + 1;
-                    Error::at_line(path, line, reason)
-                }
-                None => Error::in_file(path, reason),
-            }
-        })?;
+        let cfg: Sim2dConfig = crate::config::read_toml(path)?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -351,11 +341,7 @@ impl Sim2dConfig {
             ("fov_deg", self.fov_deg),
             ("max_range", self.max_range),
         ];
-        for (name, v) in positive {
-            if !(v.is_finite() && v > 0.0) {
-                return bad(format!("{name} must be positive and finite, got {v}"));
-            }
-        }
+        crate::config::check_values("simulate2d", &positive, false)?;
         let non_negative = [
             ("turn_radius", self.turn_radius),
             ("range_sigma", self.range_sigma),
@@ -363,11 +349,7 @@ impl Sim2dConfig {
             ("odometry.rot_per_m", self.odometry.rot_per_m),
             ("odometry.rot_per_rad", self.odometry.rot_per_rad),
         ];
-        for (name, v) in non_negative {
-            if !(v.is_finite() && v >= 0.0) {
-                return bad(format!("{name} must be ≥ 0 and finite, got {v}"));
-            }
-        }
+        crate::config::check_values("simulate2d", &non_negative, true)?;
         if !self.odometry.rot_bias_deg_per_m.is_finite() {
             return bad("odometry.rot_bias_deg_per_m must be finite".into());
         }
@@ -389,15 +371,8 @@ impl Sim2dConfig {
                 self.host
             ));
         }
-        if self.waypoints.len() < 2 {
-            return bad("at least two waypoints are needed".into());
-        }
-        if let Some(w) = self
-            .waypoints
-            .iter()
-            .find(|w| !(w[0].is_finite() && w[1].is_finite()))
-        {
-            return bad(format!("waypoint {w:?} is not finite"));
+        if let Some(problem) = super::path::waypoint_problem(&self.waypoints) {
+            return bad(problem);
         }
         if let Some(world) = &self.world
             && world
