@@ -111,6 +111,15 @@ fn unsplit_local<const D: usize>(idx: usize) -> [usize; D] {
     local
 }
 
+/// Lists swell to O(particles) where particles disagree and shrink back once
+/// they agree: give the memory back when a list uses a quarter of its
+/// capacity, or the map would grow with time rather than area.
+fn give_back_spare(list: &mut CellList) {
+    if list.spilled() && list.len() * 4 <= list.capacity() {
+        list.shrink_to_fit();
+    }
+}
+
 /// The entry a particle with pre-order index `p` sees: the containing entry
 /// with the largest `enter` (the deepest ancestor).
 #[inline]
@@ -217,51 +226,53 @@ impl<const D: usize> DpMap<D> {
     /// insert for the same pair overwrites the first).
     pub fn insert(&mut self, node: NodeId, k: CellKey<D>, hits: f32, distance: f32) {
         self.version = next_version();
-        if let Some(&pos) = self.node_index(node).get(&k) {
-            let e = &mut self.cell_mut(k)[pos as usize];
-            e.hits = hits;
-            e.distance = distance;
-            return;
-        }
-        let list = self.cell_mut(k);
-        list.push(Entry {
-            node,
-            hits,
-            distance,
-        });
-        let pos = (list.len() - 1) as u32;
-        self.node_index(node).insert(k, pos);
-        self.entries += 1;
+        let mut index = std::mem::take(self.node_index(node));
+        self.put(&mut index, node, k, hits, distance);
+        self.index[node as usize] = index;
     }
 
     /// Adds the observations of a node that has no entries yet (panics
-    /// otherwise), one per cell: `(cell, hits, distance m)`. Cheaper than [`DpMap::insert`] one by
-    /// one (no lookups of existing entries); best given in [`storage_order`].
+    /// otherwise), one per cell: `(cell, hits, distance m)`. Cheaper than
+    /// [`DpMap::insert`] one by one (the node's index is sized once); best
+    /// given in [`storage_order`].
     pub fn insert_fresh(&mut self, node: NodeId, cells: &[(CellKey<D>, f32, f32)]) {
         assert_eq!(self.node_entries(node), 0, "node {node} is not fresh");
         self.version = next_version();
         let mut index = FxHashMap::with_capacity_and_hasher(cells.len(), rustc_hash::FxBuildHasher);
         for &(k, hits, distance) in cells {
-            match index.entry(k) {
-                std::collections::hash_map::Entry::Occupied(o) => {
-                    // Same contract as `insert`: a second observation overwrites.
-                    let e = &mut self.cell_mut(k)[*o.get() as usize];
-                    e.hits = hits;
-                    e.distance = distance;
-                }
-                std::collections::hash_map::Entry::Vacant(v) => {
-                    let list = self.cell_mut(k);
-                    list.push(Entry {
-                        node,
-                        hits,
-                        distance,
-                    });
-                    v.insert((list.len() - 1) as u32);
-                    self.entries += 1;
-                }
-            }
+            self.put(&mut index, node, k, hits, distance);
         }
         *self.node_index(node) = index;
+    }
+
+    /// Writes `node`'s entry of cell `k` (`index` is the node's index, held
+    /// outside the map while it is edited): overwrites an existing entry,
+    /// else appends one.
+    fn put(
+        &mut self,
+        index: &mut FxHashMap<CellKey<D>, u32>,
+        node: NodeId,
+        k: CellKey<D>,
+        hits: f32,
+        distance: f32,
+    ) {
+        let list = self.cell_mut(k);
+        match index.entry(k) {
+            std::collections::hash_map::Entry::Occupied(o) => {
+                let e = &mut list[*o.get() as usize];
+                e.hits = hits;
+                e.distance = distance;
+            }
+            std::collections::hash_map::Entry::Vacant(v) => {
+                list.push(Entry {
+                    node,
+                    hits,
+                    distance,
+                });
+                v.insert((list.len() - 1) as u32);
+                self.entries += 1;
+            }
+        }
     }
 
     /// Adds `distance` (m) to `node`'s existing entry in cell `k` in place,
@@ -301,19 +312,12 @@ impl<const D: usize> DpMap<D> {
                 Change::Removed(_) => {
                     // A run of removals is one batch: each touched cell is
                     // compacted once instead of once per dead entry.
-                    let run = changes[i..]
-                        .iter()
-                        .take_while(|c| matches!(c, Change::Removed(_)))
-                        .count();
-                    let dead: Vec<NodeId> = changes[i..i + run]
-                        .iter()
-                        .filter_map(|c| match *c {
-                            Change::Removed(n) => Some(n),
-                            Change::Merged { .. } => None,
-                        })
-                        .collect();
+                    let mut dead = Vec::new();
+                    while let Some(&Change::Removed(n)) = changes.get(i) {
+                        dead.push(n);
+                        i += 1;
+                    }
                     self.remove_nodes(&dead);
-                    i += run;
                 }
                 Change::Merged { child, into } => {
                     self.merge_node(child, into);
@@ -358,33 +362,21 @@ impl<const D: usize> DpMap<D> {
                     w += 1;
                 }
                 list.truncate(w);
-                if list.spilled() && list.len() * 4 <= list.capacity() {
-                    list.shrink_to_fit();
-                }
+                give_back_spare(list);
                 self.entries -= removed;
             } else {
-                // Highest position first: a swap never moves a dead entry
-                // that is still to be removed from below its recorded place.
+                // Highest position first: the entry a swap moves comes from
+                // above every dead entry still to be removed, so it is live
+                // and `swap_out` may re-index it at once.
                 for c in (start..end).rev() {
-                    let pos = cells[c].1;
-                    let list = self.cell_mut(k);
-                    list.swap_remove(pos as usize);
-                    if let Some(e) = list.get(pos as usize).copied() {
-                        moved.push((e.node, k, pos));
-                    }
-                    self.entries -= 1;
-                }
-                let list = self.cell_mut(k);
-                if list.spilled() && list.len() * 4 <= list.capacity() {
-                    list.shrink_to_fit();
+                    self.swap_out(k, cells[c].1);
                 }
             }
             start = end;
         }
+        // Compaction moved only live entries.
         for (n, k, pos) in moved {
-            if !is_dead[n as usize] {
-                self.index[n as usize].insert(k, pos);
-            }
+            self.index[n as usize].insert(k, pos);
         }
     }
 
@@ -392,11 +384,7 @@ impl<const D: usize> DpMap<D> {
     fn swap_out(&mut self, k: CellKey<D>, pos: u32) {
         let list = self.cell_mut(k);
         list.swap_remove(pos as usize);
-        // Lists swell to O(particles) where particles disagree and shrink back
-        // once they agree: give the memory back, or it would grow with time.
-        if list.spilled() && list.len() * 4 <= list.capacity() {
-            list.shrink_to_fit();
-        }
+        give_back_spare(list);
         let moved = list.get(pos as usize).map(|e| e.node);
         self.entries -= 1;
         if let Some(m) = moved {

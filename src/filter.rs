@@ -17,14 +17,14 @@
 //!   tree and in the map alike.
 
 use crate::ancestry::{AncestryTree, NodeId, Numbering};
-use crate::config::{FilterConfig, Resampling};
+use crate::config::{FilterConfig, MapConfig, Resampling};
 use crate::dpmap::{DpMap, storage_order};
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
 use crate::motion_model::MotionModel;
 use crate::raycast::CellKey;
 use crate::scan::Scan;
-use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer, contiguous_run};
+use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer, map_in_preorder};
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
@@ -150,9 +150,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         tree.number(&mut numbering);
         let mut view = map.view(&numbering, root);
         let first = observe(&laser, |k| view.entry(k), &initial, scan, false, false);
-        for (k, h, d) in first.new {
-            map.insert(root, k, h, d);
-        }
+        map.insert_fresh(root, &first.new);
         let particles = vec![
             Particle {
                 pose: initial,
@@ -178,17 +176,14 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         }
     }
 
-    /// Chooses the release's every-particle-every-cell map update (`false`)
-    /// or the shared free-space update (`true`, the default).
-    pub fn set_shared_free_space(&mut self, on: bool) {
-        self.shared_free_space = on;
-    }
-
-    /// With the shared free-space update, lets only `n` of the new particles
-    /// (evenly spread over them; 0 = all) contribute their path lengths, each
-    /// with weight 1/n (see `MapConfig::free_space_particles`).
-    pub fn set_free_space_particles(&mut self, n: usize) {
-        self.free_space_particles = n;
+    /// Sets how the map update records free space, from the map settings:
+    /// the release's every-particle-every-cell update or the shared
+    /// free-space update (`shared_free_space`, the default), and how many of
+    /// the new particles feed the latter (`free_space_particles`, 0 = all;
+    /// until this is called, all).
+    pub fn set_map_update(&mut self, map: &MapConfig) {
+        self.shared_free_space = map.shared_free_space;
+        self.free_space_particles = map.free_space_particles;
     }
 
     /// Replaces the scan scorer (e.g. with the GPU backend).
@@ -349,20 +344,14 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         };
         // Exactly `sharers` of the indices 0..n pass, evenly spread.
         let shares = |i: usize| (i * sharers) % n < sharers;
-        // Parents in pre-order keep each worker's map cache moving forward
-        // (see `ViewCache`); the observations are stored back in input order.
-        let mut order: Vec<usize> = (0..n).collect();
-        order.sort_by_key(|&i| {
-            let parent = self.particles[samples[chosen[i]].parent].node;
-            self.numbering.enter[parent as usize]
-        });
-        let mut observations: Vec<Option<Observation<D>>> = (0..n).map(|_| None).collect();
-        let observed: Vec<Observation<D>> = order
-            .par_iter()
-            .with_min_len(contiguous_run(order.len()))
-            .map(|&i| {
-                let j = chosen[i];
-                let s = &samples[j];
+        let observations: Vec<Observation<D>> = map_in_preorder(
+            n,
+            |i| {
+                let parent = self.particles[samples[chosen[i]].parent].node;
+                self.numbering.enter[parent as usize]
+            },
+            |i| {
+                let s = &samples[chosen[i]];
                 let mut cache = self.caches.thread_cache();
                 let mut view = self
                     .map
@@ -375,16 +364,12 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
                     shared,
                     shares(i),
                 )
-            })
-            .collect();
-        for (&i, o) in order.iter().zip(observed) {
-            observations[i] = Some(o);
-        }
+            },
+        );
         let share = 1.0 / sharers as f32;
         let mut next = Vec::with_capacity(chosen.len());
         let mut best = (f64::NEG_INFINITY, 0);
         for (i, (&j, obs)) in chosen.iter().zip(observations).enumerate() {
-            let obs = obs.expect("every chosen sample observed");
             let s = &samples[j];
             let parent = self.particles[s.parent].node;
             let node = self.tree.add_child(

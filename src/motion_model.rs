@@ -133,6 +133,30 @@ impl Gaussian6dModel {
         let sr = (self.rot_std[0] * d + self.rot_std[1] * a).max(self.min_std[1]);
         (st, sr)
     }
+
+    /// The covariance (body frame of the new pose, `[ω rad, t m]`) of the
+    /// product of two Gaussians over the new pose: the scan matcher's,
+    /// `icp` (same frame and order), and this model's for the motion `delta`
+    /// (isotropic per block, so its frame does not matter):
+    /// `(icp⁻¹ + motion⁻¹)⁻¹`. A singular `icp` (a direction the sweep does
+    /// not constrain) leaves the motion model's spread in that direction.
+    pub fn fuse(
+        &self,
+        delta: &crate::geometry::Pose3,
+        icp: &nalgebra::Matrix6<f64>,
+    ) -> Option<nalgebra::Matrix6<f64>> {
+        let (st, sr) = self.stds(delta);
+        let mut motion_info = nalgebra::Matrix6::zeros();
+        for i in 0..3 {
+            motion_info[(i, i)] = 1.0 / (sr * sr).max(1e-18);
+            motion_info[(i + 3, i + 3)] = 1.0 / (st * st).max(1e-18);
+        }
+        let icp_info = icp.try_inverse()?;
+        let fused = (icp_info + motion_info).try_inverse()?;
+        // Symmetrise: the inverse of a symmetric matrix is symmetric only up
+        // to rounding, and the Cholesky factor reads the lower triangle.
+        Some((fused + fused.transpose()) * 0.5)
+    }
 }
 
 impl MotionModel<3, crate::geometry::Pose3> for Gaussian6dModel {
@@ -151,12 +175,10 @@ impl MotionModel<3, crate::geometry::Pose3> for Gaussian6dModel {
             Translation3::from(delta.translation.vector + dt),
             delta.rotation * UnitQuaternion::from_scaled_axis(dr),
         );
-        // Renormalise: the 3-D pipeline chains poses through inverses and
-        // products every sweep, and an unnormalised quaternion's error grows
-        // geometrically along that chain.
-        let mut p = prev * noisy;
-        p.rotation.renormalize();
-        p
+        // `Pose::compose` renormalises: the 3-D pipeline chains poses through
+        // inverses and products every sweep, and an unnormalised quaternion's
+        // error grows geometrically along that chain.
+        prev.compose(&noisy)
     }
 }
 
@@ -306,32 +328,6 @@ pub struct AlignedGaussian6dModel {
     pub noise: ProposalNoise,
 }
 
-impl Gaussian6dModel {
-    /// The covariance (body frame of the new pose, `[ω rad, t m]`) of the
-    /// product of two Gaussians over the new pose: the scan matcher's,
-    /// `icp` (same frame and order), and this model's for the motion `delta`
-    /// (isotropic per block, so its frame does not matter):
-    /// `(icp⁻¹ + motion⁻¹)⁻¹`. A singular `icp` (a direction the sweep does
-    /// not constrain) leaves the motion model's spread in that direction.
-    pub fn fuse(
-        &self,
-        delta: &crate::geometry::Pose3,
-        icp: &nalgebra::Matrix6<f64>,
-    ) -> Option<nalgebra::Matrix6<f64>> {
-        let (st, sr) = self.stds(delta);
-        let mut motion_info = nalgebra::Matrix6::zeros();
-        for i in 0..3 {
-            motion_info[(i, i)] = 1.0 / (sr * sr).max(1e-18);
-            motion_info[(i + 3, i + 3)] = 1.0 / (st * st).max(1e-18);
-        }
-        let icp_info = icp.try_inverse()?;
-        let fused = (icp_info + motion_info).try_inverse()?;
-        // Symmetrise: the inverse of a symmetric matrix is symmetric only up
-        // to rounding, and the Cholesky factor reads the lower triangle.
-        Some((fused + fused.transpose()) * 0.5)
-    }
-}
-
 impl MotionModel<3, crate::geometry::Pose3> for AlignedGaussian6dModel {
     fn sample(
         &self,
@@ -349,8 +345,6 @@ impl MotionModel<3, crate::geometry::Pose3> for AlignedGaussian6dModel {
             Translation3::from(Vector3::new(xi[3], xi[4], xi[5])),
             UnitQuaternion::from_scaled_axis(Vector3::new(xi[0], xi[1], xi[2])),
         );
-        let mut p = prev * delta * step;
-        p.rotation.renormalize();
-        p
+        (prev * delta).compose(&step)
     }
 }

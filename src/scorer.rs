@@ -145,30 +145,35 @@ impl<const D: usize, P: Pose<D>> Scorer<D, P> for CpuScorer<D> {
     ) -> Vec<f64> {
         // Pre-order keeps each worker's map-cache lookups moving forward
         // through every cell's breakpoints (see `ViewCache`): O(1) each.
-        let order = preorder(ctx.numbering, candidates);
-        let scored: Vec<f64> = order
-            .par_iter()
-            .with_min_len(contiguous_run(order.len()))
-            .map(|&i| self.score_one(ctx, &candidates[i], subset, trace))
-            .collect();
-        let mut out = vec![0.0; candidates.len()];
-        for (&i, s) in order.iter().zip(scored) {
-            out[i] = s;
-        }
-        out
+        map_in_preorder(
+            candidates.len(),
+            |i| ctx.numbering.enter[candidates[i].node as usize],
+            |i| self.score_one(ctx, &candidates[i], subset, trace),
+        )
     }
 }
 
-/// Candidate indices sorted by their node's pre-order index (ties keep input order).
-pub fn preorder<P>(numbering: &Numbering, candidates: &[Candidate<P>]) -> Vec<usize> {
-    let mut order: Vec<usize> = (0..candidates.len()).collect();
-    order.sort_by_key(|&i| numbering.enter[candidates[i].node as usize]);
-    order
-}
-
-/// Smallest run of pre-ordered work a worker takes at once: long runs keep
-/// each worker's cache cursors moving forward; 8 runs per worker still
-/// balance the load.
-pub fn contiguous_run(items: usize) -> usize {
-    (items / (8 * rayon::current_num_threads().max(1))).max(1)
+/// `f(0..n)` in parallel, visiting the indices sorted by `preorder` (a node's
+/// depth-first index; ties keep index order), results in index order.
+///
+/// Map lookups for particles in pre-order walk every cached cell's
+/// breakpoints forward (see `ViewCache`), so each worker takes contiguous
+/// runs of that order: 8 runs per worker still balance the load. The order
+/// only changes speed: each `f(i)` is computed on its own.
+pub fn map_in_preorder<T: Send>(
+    n: usize,
+    preorder: impl Fn(usize) -> u32,
+    f: impl Fn(usize) -> T + Sync,
+) -> Vec<T> {
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by_key(|&i| preorder(i));
+    let run = (n / (8 * rayon::current_num_threads().max(1))).max(1);
+    let done: Vec<T> = order.par_iter().with_min_len(run).map(|&i| f(i)).collect();
+    let mut out: Vec<Option<T>> = (0..n).map(|_| None).collect();
+    for (&i, x) in order.iter().zip(done) {
+        out[i] = Some(x);
+    }
+    out.into_iter()
+        .map(|x| x.expect("order is a permutation of 0..n"))
+        .collect()
 }

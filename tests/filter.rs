@@ -1,7 +1,7 @@
 //! Filter-level behaviour on the shipped simulated log.
 
 use dpslam::bench::rig::prepare_log;
-use dpslam::config::Config;
+use dpslam::config::{Config, MapConfig};
 use std::path::Path;
 
 /// Free path length (m) held by the tree root's entries: where the shared
@@ -29,7 +29,10 @@ fn a_sample_of_particles_estimates_the_shared_free_space_update() {
     let mut entries = Vec::new();
     for sharers in [0, 64] {
         let mut f = prepared.new_filter(particles);
-        f.set_free_space_particles(sharers);
+        f.set_map_update(&MapConfig {
+            free_space_particles: sharers,
+            ..MapConfig::default()
+        });
         let before = root_free_path(&f);
         for s in &prepared.steps {
             f.step(&s.delta, &s.scan, s.index);

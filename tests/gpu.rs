@@ -208,16 +208,30 @@ fn map2d_with_backend_gpu_and_no_adapter_fails_cleanly() {
 }
 
 /// Reads `trajectory.tum` rows as (t, x, y).
-fn trajectory(path: &std::path::Path) -> Vec<(f64, f64, f64)> {
+/// Positions `x y z` (m) of a TUM trajectory, in file order.
+fn trajectory(path: &std::path::Path) -> Vec<[f64; 3]> {
     std::fs::read_to_string(path)
         .unwrap()
         .lines()
         .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
         .map(|l| {
             let v: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
-            (v[0], v[1], v[2])
+            [v[1], v[2], v[3]]
         })
         .collect()
+}
+
+/// Asserts that the two trajectories have the same length and positions
+/// within 0.01 m of each other (3-D distance; z is 0 in 2-D).
+fn assert_same_trajectory(cpu: &[[f64; 3]], gpu: &[[f64; 3]]) {
+    assert_eq!(cpu.len(), gpu.len());
+    let worst = cpu
+        .iter()
+        .zip(gpu)
+        .map(|(a, b)| (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt())
+        .fold(0.0, f64::max);
+    eprintln!("max position difference gpu vs cpu: {worst:.4} m");
+    assert!(worst <= 0.01, "max position difference {worst} m");
 }
 
 /// About 5 minutes on 2 cores with lavapipe: run with `--ignored`.
@@ -264,14 +278,7 @@ fn map2d_gpu_and_cpu_trajectories_agree_on_mit_csail_prefix() {
     let cpu = run(Backend::Cpu);
     let gpu = run(Backend::Gpu);
     assert_eq!(cpu.len(), 300);
-    assert_eq!(cpu.len(), gpu.len());
-    let worst = cpu
-        .iter()
-        .zip(&gpu)
-        .map(|(a, b)| (a.1 - b.1).hypot(a.2 - b.2))
-        .fold(0.0, f64::max);
-    eprintln!("max position difference gpu vs cpu: {worst:.4} m");
-    assert!(worst <= 0.01, "max position difference {worst} m");
+    assert_same_trajectory(&cpu, &gpu);
 }
 
 /// The 3-D embedded default (`data/sim3d`) mapped on both backends, same
@@ -310,12 +317,5 @@ fn map3d_gpu_and_cpu_trajectories_agree_on_the_simulator() {
     };
     let cpu = run(Backend::Cpu);
     let gpu = run(Backend::Gpu);
-    assert_eq!(cpu.len(), gpu.len());
-    let worst = cpu
-        .iter()
-        .zip(&gpu)
-        .map(|(a, b)| (a.1 - b.1).hypot(a.2 - b.2))
-        .fold(0.0, f64::max);
-    eprintln!("max position difference gpu vs cpu: {worst:.4} m");
-    assert!(worst <= 0.01, "max position difference {worst} m");
+    assert_same_trajectory(&cpu, &gpu);
 }

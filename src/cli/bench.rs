@@ -96,14 +96,24 @@ pub struct AccuracyArgs {
     pub threads: Option<usize>,
 }
 
-fn run_accuracy(a: AccuracyArgs) -> dpslam::Result<()> {
-    use dpslam::bench::accuracy::{AccuracyOptions, run_accuracy};
+/// A benchmark's configuration: as `map2d`'s, without a `--seed` flag (the
+/// seed is the config file's or the default).
+fn bench_config(
+    config: Option<std::path::PathBuf>,
+    threads: Option<usize>,
+    particles: Option<usize>,
+) -> dpslam::Result<dpslam::config::Config> {
     let run = super::map2d::RunArgs {
         seed: None,
-        config: a.config.clone(),
-        threads: a.threads,
+        config,
+        threads,
     };
-    let cfg = super::map2d::build_config(&run, a.particles)?;
+    super::map2d::build_config(&run, particles)
+}
+
+fn run_accuracy(a: AccuracyArgs) -> dpslam::Result<()> {
+    use dpslam::bench::accuracy::{AccuracyOptions, run_accuracy};
+    let cfg = bench_config(a.config.clone(), a.threads, a.particles)?;
     let mut opts = AccuracyOptions::new(cfg);
     opts.quick = a.quick;
     opts.only = a.only;
@@ -157,12 +167,7 @@ pub struct ScalingArgs {
 
 fn run_scaling(a: ScalingArgs) -> dpslam::Result<()> {
     use dpslam::bench::scaling::{ScalingOptions, run_scaling, write_scaling_plot};
-    let run = super::map2d::RunArgs {
-        seed: None,
-        config: a.config.clone(),
-        threads: a.threads,
-    };
-    let cfg = super::map2d::build_config(&run, None)?;
+    let cfg = bench_config(a.config.clone(), a.threads, None)?;
     let opts = ScalingOptions {
         log: a.log.unwrap_or_else(|| super::map2d::DEFAULT_LOG.into()),
         particles: a.particles,

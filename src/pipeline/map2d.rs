@@ -60,8 +60,7 @@ pub fn new_filter(
         first,
         index,
     );
-    filter.set_shared_free_space(cfg.map.shared_free_space);
-    filter.set_free_space_particles(cfg.map.free_space_particles);
+    filter.set_map_update(&cfg.map);
     filter
 }
 

@@ -341,8 +341,7 @@ pub fn run_map3d_with(
         &scan0,
         0,
     );
-    filter.set_shared_free_space(cfg.map.shared_free_space);
-    filter.set_free_space_particles(cfg.map.free_space_particles);
+    filter.set_map_update(&cfg.map);
     filter.set_scorer(crate::backend::make_scorer::<3, Pose3>(opts.backend)?.0);
     proposal.push(0, proposal.prepare(&first.points));
     let mut points_per_sweep = vec![first.points.len()];
@@ -372,8 +371,8 @@ pub fn run_map3d_with(
         };
         prev_prior = sweep.prior;
         let best = filter.particles()[filter.best_index()].pose;
-        let mut guess = best * prior_delta;
-        guess.rotation.renormalize();
+        // `compose` keeps the quaternions unit along the sweep-to-sweep chain.
+        let guess = best.compose(&prior_delta);
 
         let t0 = Instant::now();
         let prepared = proposal.prepare(&sweep.points);
@@ -399,8 +398,7 @@ pub fn run_map3d_with(
         t_prop += t0.elapsed().as_secs_f64();
 
         let t1 = Instant::now();
-        let mut delta = best.inverse() * aligned;
-        delta.rotation.renormalize();
+        let delta = best.inverse().compose(&aligned);
         // Sample from the scan matcher's Gaussian fused with the motion
         // noise (see AlignedGaussian6dModel); without an alignment, or with
         // the fusion switched off, the motion noise alone.
@@ -411,8 +409,7 @@ pub fn run_map3d_with(
         stats.push(filter.step(&delta, &scan, i as u32));
         t_filt += t1.elapsed().as_secs_f64();
         let new_best = filter.particles()[filter.best_index()].pose;
-        velocity = best.inverse() * new_best;
-        velocity.rotation.renormalize();
+        velocity = best.inverse().compose(&new_best);
         if debug {
             let show = |p: &Pose3| {
                 let (r, pi, y) = p.rotation.euler_angles();
