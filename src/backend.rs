@@ -4,9 +4,10 @@
 //! [`make_scorer`] is what the 2-D and 3-D pipelines call with the user's
 //! `--backend`. `gpu` is strict (an error when it cannot run: no `gpu`
 //! feature, no Vulkan adapter); `auto` tries the GPU and falls back to the
-//! CPU, saying so on stderr. Scores agree between backends to f32 precision
-//! (see `tests/gpu.rs`), so the choice changes speed, not results beyond
-//! rounding.
+//! CPU, saying so on stderr. In the GPU's default f64 mode scores agree
+//! with the CPU's to ~1e-12 and runs give the same trajectory; in f32 mode
+//! (adapters without f64, or [`GpuPrecision::F32`]) they agree to ~2e-4
+//! nats (see `tests/gpu.rs`, docs/GPU.md).
 
 pub mod bench;
 
@@ -47,39 +48,91 @@ impl std::fmt::Display for Backend {
     }
 }
 
+/// The arithmetic of the GPU likelihood shader (see `crate::gpu`).
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    clap::ValueEnum,
+    serde::Serialize,
+    serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum GpuPrecision {
+    /// f64 where the adapter supports it (`SHADER_F64`), else f32.
+    #[default]
+    Auto,
+    /// f32: fastest on consumer GPUs (f64 there runs at 1/32–1/64 rate);
+    /// scores within ~2e-4 nats of the CPU's.
+    F32,
+    /// f64: scores equal the CPU's to ~1e-12, so runs follow the CPU's
+    /// trajectory; an error where the adapter lacks `SHADER_F64`.
+    F64,
+}
+
+impl std::fmt::Display for GpuPrecision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            GpuPrecision::Auto => "auto",
+            GpuPrecision::F32 => "f32",
+            GpuPrecision::F64 => "f64",
+        })
+    }
+}
+
+impl GpuPrecision {
+    /// The choice in `DPSLAM_GPU_PRECISION` (`auto`, `f32` or `f64`), else `Auto`.
+    pub fn from_env() -> Result<Self> {
+        use clap::ValueEnum;
+        match std::env::var("DPSLAM_GPU_PRECISION") {
+            Err(_) => Ok(Self::Auto),
+            Ok(v) => Self::from_str(&v, true).map_err(|_| {
+                crate::Error::Gpu(format!(
+                    "DPSLAM_GPU_PRECISION is {v:?}: expected auto, f32 or f64"
+                ))
+            }),
+        }
+    }
+}
+
 /// Whether this build has the GPU path (crate feature `gpu`).
 pub const GPU_COMPILED: bool = cfg!(feature = "gpu");
 
-/// A scorer for `backend` and the name of the backend actually used
-/// (`"cpu"` or `"gpu"`).
+/// A scorer for `backend` and a description of the backend actually used:
+/// `"cpu"`, or `"gpu"` followed by the precision and the adapter (e.g.
+/// `"gpu f64 on llvmpipe (…)"`).
 ///
 /// Errors ([`crate::Error::Gpu`]) only for [`Backend::Gpu`] when this build lacks
 /// the `gpu` feature or no Vulkan adapter can be opened (with
 /// `WGPU_BACKEND=gl` none ever can: this build compiles in Vulkan only).
 pub fn make_scorer<const D: usize, P: Pose<D>>(
     backend: Backend,
-) -> Result<(Box<dyn Scorer<D, P>>, &'static str)> {
+) -> Result<(Box<dyn Scorer<D, P>>, String)> {
     match backend {
-        Backend::Cpu => Ok((Box::new(CpuScorer::<D>::new()), "cpu")),
+        Backend::Cpu => Ok((Box::new(CpuScorer::<D>::new()), "cpu".into())),
         Backend::Gpu => gpu_scorer::<D, P>(),
         Backend::Auto => match gpu_scorer::<D, P>() {
             Ok(s) => Ok(s),
             Err(e) => {
                 eprintln!("dpslam: {e}; using the CPU backend");
-                Ok((Box::new(CpuScorer::<D>::new()), "cpu"))
+                Ok((Box::new(CpuScorer::<D>::new()), "cpu".into()))
             }
         },
     }
 }
 
 #[cfg(feature = "gpu")]
-fn gpu_scorer<const D: usize, P: Pose<D>>() -> Result<(Box<dyn Scorer<D, P>>, &'static str)> {
+fn gpu_scorer<const D: usize, P: Pose<D>>() -> Result<(Box<dyn Scorer<D, P>>, String)> {
     let s = crate::gpu::GpuScorer::<D>::new()?;
-    Ok((Box::new(s), "gpu"))
+    let name = format!("gpu {} on {}", s.precision(), s.adapter());
+    Ok((Box::new(s), name))
 }
 
 #[cfg(not(feature = "gpu"))]
-fn gpu_scorer<const D: usize, P: Pose<D>>() -> Result<(Box<dyn Scorer<D, P>>, &'static str)> {
+fn gpu_scorer<const D: usize, P: Pose<D>>() -> Result<(Box<dyn Scorer<D, P>>, String)> {
     Err(crate::Error::Gpu(
         "this dpslam was built without the GPU path: rebuild with `--features gpu` or run with --backend cpu".into(),
     ))
@@ -93,9 +146,9 @@ mod tests {
     #[test]
     fn cpu_is_always_available_and_auto_never_fails() {
         let (s, used) = make_scorer::<2, Pose2>(Backend::Cpu).unwrap();
-        assert_eq!((s.name(), used), ("cpu", "cpu"));
+        assert_eq!((s.name(), used.as_str()), ("cpu", "cpu"));
         let (s, used) = make_scorer::<2, Pose2>(Backend::Auto).unwrap();
-        assert_eq!(s.name(), used);
+        assert!(used.starts_with(s.name()), "{used}");
     }
 
     #[cfg(not(feature = "gpu"))]
@@ -118,6 +171,9 @@ mod tests {
             assert_eq!(Backend::from_str(&b.to_string(), false).unwrap(), *b);
             let j = serde_json::to_string(b).unwrap();
             assert_eq!(j, format!("\"{b}\""));
+        }
+        for p in GpuPrecision::value_variants() {
+            assert_eq!(GpuPrecision::from_str(&p.to_string(), false).unwrap(), *p);
         }
     }
 }

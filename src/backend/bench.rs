@@ -349,6 +349,8 @@ pub struct PathTiming {
     pub map_upload_bytes: Option<u64>,
     /// Bytes read back per iteration (GPU only).
     pub readback_bytes_per_iteration: Option<u64>,
+    /// Shader arithmetic, "f32" or "f64" (GPU only).
+    pub precision: Option<String>,
 }
 
 /// The `bench likelihood` report.
@@ -400,6 +402,8 @@ pub struct LikelihoodBenchSpec {
     pub min_time_s: f64,
     /// Seed.
     pub seed: u64,
+    /// Arithmetic of the GPU shader.
+    pub precision: super::GpuPrecision,
 }
 
 fn time_path<const D: usize, P: Pose<D>>(
@@ -443,6 +447,7 @@ fn run_bench<const D: usize, P: Pose<D>>(
             upload_bytes_per_iteration: None,
             map_upload_bytes: None,
             readback_bytes_per_iteration: None,
+            precision: None,
         });
     }
     if matches!(spec.backends, BenchBackends::Gpu | BenchBackends::Both) {
@@ -488,7 +493,7 @@ fn gpu_path<const D: usize, P: Pose<D>>(
     work: f64,
     results: &mut Vec<Vec<f64>>,
 ) -> Result<PathTiming> {
-    let gpu = crate::gpu::GpuScorer::<D>::new()?;
+    let gpu = crate::gpu::GpuScorer::<D>::with_precision(spec.precision)?;
     // Through `try_score` once: a device failure must fail the bench, not
     // silently time the CPU fallback.
     gpu.try_score(&fx.context(), &fx.candidates, BeamSubset::ALL, Trace::Full)?;
@@ -506,6 +511,7 @@ fn gpu_path<const D: usize, P: Pose<D>>(
         upload_bytes_per_iteration: Some(last.upload_bytes),
         map_upload_bytes: Some(map_bytes.saturating_sub(last.upload_bytes)),
         readback_bytes_per_iteration: Some(last.readback_bytes),
+        precision: Some(gpu.precision().to_string()),
     })
 }
 

@@ -15,6 +15,7 @@
 
 use super::plot::{PALETTE, Plot, Series};
 use super::report::{AccuracyReport, Matching, RunResult, Skipped, results_markdown};
+use super::scaling::{ScalingOptions, ScalingReport, run_scaling, write_scaling_plot};
 use crate::config::Config;
 use crate::eval::ate::{AteOptions, align_se2, associate, evaluate_ate};
 use crate::eval::relations::{
@@ -111,6 +112,9 @@ pub struct AccuracyOptions {
     pub noise: NoiseModel,
     /// Command line, for the report.
     pub command: String,
+    /// The particle-scaling measurement to run after the datasets (its table
+    /// and plot go into the report); `None` skips it, and `quick` never runs it.
+    pub scaling: Option<ScalingOptions>,
 }
 
 impl AccuracyOptions {
@@ -118,6 +122,7 @@ impl AccuracyOptions {
     /// `../shared/datasets`, all relative to the crate root.
     pub fn new(cfg: Config) -> Self {
         let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+        let scaling_cfg = cfg.clone();
         Self {
             quick: false,
             out: root.join("target/bench-accuracy"),
@@ -129,6 +134,13 @@ impl AccuracyOptions {
             noise_seed: DEFAULT_NOISE_SEED,
             noise: NoiseModel::default(),
             command: String::new(),
+            scaling: Some(ScalingOptions {
+                log: root.join("data/sim2d/sim2d.clf"),
+                particles: vec![100, 300, 1000, 3000],
+                warmup_scans: 20,
+                timed_steps: 5,
+                cfg: scaling_cfg,
+            }),
         }
     }
 }
@@ -531,7 +543,19 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
     Ok(result)
 }
 
-/// Runs every planned dataset, then writes `<docs>/RESULTS.md` and
+/// Runs the scaling bench with `so` (its own `particles` per point, the
+/// rest of the configuration from `so.cfg`) and writes
+/// `time-vs-particles.png` and `scaling.json` into `dir`.
+pub fn run_scaling_into(so: &ScalingOptions, dir: &Path) -> Result<ScalingReport> {
+    let r = run_scaling(so)?;
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    write_scaling_plot(&r, &dir.join("time-vs-particles.png"))?;
+    crate::pipeline::write_json(&dir.join("scaling.json"), &r)?;
+    Ok(r)
+}
+
+/// Runs every planned dataset and then the scaling bench (unless
+/// `opts.scaling` is `None`), then writes `<docs>/RESULTS.md` and
 /// `<out>/results.json`. A dataset that fails is reported as not run (with
 /// the error) rather than losing the others.
 pub fn run_accuracy(opts: &AccuracyOptions) -> Result<AccuracyReport> {
@@ -568,7 +592,30 @@ pub fn run_accuracy(opts: &AccuracyOptions) -> Result<AccuracyReport> {
             }
         }
     }
-    let scaling = opts.docs.join("results/time-vs-particles.png");
+    let mut scaling = None;
+    if let Some(so) = opts.scaling.as_ref().filter(|_| !opts.quick) {
+        eprintln!(
+            "bench accuracy: scaling ({:?} particles, {} warm-up scans, {} timed steps) ...",
+            so.particles, so.warmup_scans, so.timed_steps
+        );
+        match run_scaling_into(so, &opts.docs.join("results")) {
+            Ok(r) => {
+                eprintln!(
+                    "bench accuracy: scaling: {:.2} ms per particle, 3000/300 = {:?}",
+                    r.slope_ms_per_particle, r.ratio_3000_300
+                );
+                scaling = Some(r);
+            }
+            Err(e) => {
+                eprintln!("bench accuracy: scaling: failed: {e}");
+                skipped.push(Skipped {
+                    name: "scaling".into(),
+                    reason: format!("run failed: {e}"),
+                });
+            }
+        }
+    }
+    let scaling_png = opts.docs.join("results/time-vs-particles.png");
     let report = AccuracyReport {
         quick: opts.quick,
         command: opts.command.clone(),
@@ -583,9 +630,10 @@ pub fn run_accuracy(opts: &AccuracyOptions) -> Result<AccuracyReport> {
         total_wall_s: start.elapsed().as_secs_f64(),
         runs,
         skipped,
-        scaling_plot: scaling
+        scaling_plot: scaling_png
             .is_file()
             .then(|| "results/time-vs-particles.png".into()),
+        scaling,
     };
     std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
     crate::pipeline::write_json(&opts.out.join("results.json"), &report)?;

@@ -1,5 +1,6 @@
 //! Benchmark results as Markdown: the per-dataset table and `docs/RESULTS.md`.
 
+use super::scaling::ScalingReport;
 use crate::eval::relations::RelationsReport;
 use serde::Serialize;
 
@@ -95,6 +96,8 @@ pub struct AccuracyReport {
     pub skipped: Vec<Skipped>,
     /// Path of the time-per-iteration plot relative to the document, if any.
     pub scaling_plot: Option<String>,
+    /// The particle-scaling measurement of this run, if it ran.
+    pub scaling: Option<ScalingReport>,
 }
 
 /// A Markdown table cell: `|` and line breaks would break the row.
@@ -315,11 +318,107 @@ pub fn results_markdown(r: &AccuracyReport) -> String {
             s += "\n\n";
         }
     }
+    if r.scaling.is_some() || r.scaling_plot.is_some() {
+        s += "## Time per iteration vs particles\n\n";
+    }
+    if let Some(sc) = &r.scaling {
+        s += &scaling_section(sc);
+    }
     if let Some(p) = &r.scaling_plot {
         s += &format!(
-            "## Time per iteration vs particles\n\n![time per iteration]({p})\n\n\
-             x: particles, y: seconds per filter step (from `dpslam bench scaling`).\n"
+            "![time per iteration]({p})\n\n\
+             x: particles, y: seconds per filter step (`dpslam bench scaling`, run by \
+             `bench accuracy` unless `--no-scaling`).\n"
         );
     }
     s
+}
+
+/// The scaling table and its fitted figures.
+fn scaling_section(sc: &ScalingReport) -> String {
+    let rows: Vec<Vec<String>> = sc
+        .points
+        .iter()
+        .map(|p| {
+            vec![
+                p.particles.to_string(),
+                format!("{:.3}", p.mean_step_s),
+                format!("{:.3}", p.min_step_s),
+                format!("{:.1}", p.per_particle_us),
+            ]
+        })
+        .collect();
+    let mut s = format!(
+        "Log `{}`: {} processed scans build the map, then {} steps are timed per \
+         particle count ({} worker threads).\n\n",
+        sc.log.file_name().map_or_else(
+            || sc.log.display().to_string(),
+            |n| n.to_string_lossy().into_owned()
+        ),
+        sc.warmup_scans,
+        sc.timed_steps,
+        sc.threads
+    );
+    s += &markdown_table(
+        &[
+            "particles",
+            "mean s per step",
+            "fastest s",
+            "µs per particle",
+        ],
+        &rows,
+    );
+    s += &format!(
+        "\n- least-squares slope **{:.2} ms per particle**, intercept {:.0} ms\n\
+         - log-log exponent {:.3} (1 = linear)\n",
+        sc.slope_ms_per_particle, sc.intercept_ms, sc.loglog_exponent
+    );
+    if let Some(q) = sc.ratio_3000_300 {
+        s += &format!("- 3000 vs 300 particles: **{q:.1}×** the time (linear: 10×)\n");
+    }
+    s.push('\n');
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bench::scaling::{ScalingPoint, summarize};
+
+    #[test]
+    fn scaling_section_reports_the_measured_ratio_and_slope() {
+        let points: Vec<ScalingPoint> = [(100, 0.3), (300, 0.9), (3000, 9.3)]
+            .into_iter()
+            .map(|(n, t)| ScalingPoint {
+                particles: n,
+                mean_step_s: t,
+                min_step_s: t * 0.9,
+                per_particle_us: t / n as f64 * 1e6,
+                warmup_s: 1.0,
+            })
+            .collect();
+        let (slope, intercept, exponent, ratio, largest, pr) = summarize(&points);
+        let sc = ScalingReport {
+            log: "data/sim2d/sim2d.clf".into(),
+            warmup_scans: 20,
+            timed_steps: 5,
+            threads: 2,
+            points,
+            slope_ms_per_particle: slope,
+            intercept_ms: intercept,
+            loglog_exponent: exponent,
+            ratio_3000_300: ratio,
+            ratio_largest_smallest: largest,
+            particle_ratio: pr,
+        };
+        let s = scaling_section(&sc);
+        assert!(s.contains("sim2d.clf"), "{s}");
+        assert!(s.contains("| 3000 | 9.300 |"), "{s}");
+        // 9.3 / 0.9 = 10.33…
+        assert!(s.contains("**10.3×**"), "{s}");
+        assert!(
+            s.contains(&format!("**{slope:.2} ms per particle**")),
+            "{s}"
+        );
+    }
 }

@@ -44,6 +44,9 @@ pub struct LikelihoodArgs {
     /// Seed of the map-building filter and of the candidates
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Arithmetic of the GPU shader (auto: f64 where the adapter has it)
+    #[arg(long, value_enum, default_value_t = dpslam::backend::GpuPrecision::Auto)]
+    pub precision: dpslam::backend::GpuPrecision,
 }
 
 fn run_likelihood(a: LikelihoodArgs) -> dpslam::Result<()> {
@@ -55,6 +58,7 @@ fn run_likelihood(a: LikelihoodArgs) -> dpslam::Result<()> {
         backends: a.backend,
         min_time_s: a.min_time,
         seed: a.seed,
+        precision: a.precision,
     };
     let report = dpslam::backend::bench::bench_likelihood(&spec)?;
     println!(
@@ -94,6 +98,10 @@ pub struct AccuracyArgs {
     /// Worker threads (0 = all cores)
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Skip the particle-scaling measurement (100-3000 particles on the
+    /// simulated log, ~3 min on 2 cores) that follows the datasets
+    #[arg(long)]
+    pub no_scaling: bool,
 }
 
 /// A benchmark's configuration: as `map2d`'s, without a `--seed` flag (the
@@ -119,6 +127,9 @@ fn run_accuracy(a: AccuracyArgs) -> dpslam::Result<()> {
     opts.only = a.only;
     opts.noise_seed = a.noise_seed;
     opts.command = std::env::args().collect::<Vec<_>>().join(" ");
+    if a.no_scaling || a.quick {
+        opts.scaling = None;
+    }
     if let Some(o) = a.out {
         opts.out = o;
     }

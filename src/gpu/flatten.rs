@@ -29,10 +29,26 @@ pub(crate) struct FlatMap {
     pub table: Vec<[i32; 4]>,
     /// Per brick, `cells_per_brick + 1` offsets into `entries`.
     pub headers: Vec<u32>,
-    /// `(node id, density in stops per cell length as f32 bits)`.
-    pub entries: Vec<[u32; 2]>,
+    /// One per observation, in cell order.
+    pub entries: Vec<Entry>,
     /// Brick side as a power of two.
     pub brick_bits: u32,
+}
+
+/// One observation of the flat map.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub(crate) struct Entry {
+    /// Ancestry node id.
+    pub node: u32,
+    /// Stop density, stops per cell length (0 for a cell never seen to stop a beam).
+    pub density: f64,
+}
+
+/// An f64 as two f32s whose (f64) sum is the value to ~48 bits; `hi` alone
+/// is the value rounded to f32. The shader joins them with `wide`.
+pub(crate) fn split(x: f64) -> [f32; 2] {
+    let hi = x as f32;
+    [hi, (x - hi as f64) as f32]
 }
 
 impl FlatMap {
@@ -51,7 +67,7 @@ impl FlatMap {
         let mut brick_of: rustc_hash::FxHashMap<[i32; 3], u32> = Default::default();
         let mut keys: Vec<[i32; 3]> = Vec::new();
         // (slot = brick · cpb + local cell, entry), then a counting sort by slot.
-        let mut tmp: Vec<(u32, [u32; 2])> = Vec::with_capacity(map.entry_count());
+        let mut tmp: Vec<(u32, Entry)> = Vec::with_capacity(map.entry_count());
         map.for_each_cell(|k, list| {
             let mut bk = [0i32; 3];
             let mut local = 0usize;
@@ -65,12 +81,18 @@ impl FlatMap {
             });
             let slot = (b as usize * cpb + local) as u32;
             for e in list {
-                let rho = if e.hits <= 0.0 {
+                let density = if e.hits <= 0.0 {
                     0.0
                 } else {
-                    (e.hits as f64 / e.distance as f64 * cell) as f32
+                    e.hits as f64 / e.distance as f64 * cell
                 };
-                tmp.push((slot, [e.node, rho.to_bits()]));
+                tmp.push((
+                    slot,
+                    Entry {
+                        node: e.node,
+                        density,
+                    },
+                ));
             }
         });
         let slots = keys.len() * cpb;
@@ -82,7 +104,7 @@ impl FlatMap {
             start[i + 1] += start[i];
         }
         let mut cursor = start.clone();
-        let mut entries = vec![[0u32; 2]; tmp.len()];
+        let mut entries = vec![Entry::default(); tmp.len()];
         for (s, e) in tmp {
             let c = &mut cursor[s as usize];
             entries[*c as usize] = e;
@@ -106,7 +128,7 @@ impl FlatMap {
             headers.push(0);
         }
         if entries.is_empty() {
-            entries.push([0, 0]);
+            entries.push(Entry::default());
         }
         Self {
             table,
@@ -117,8 +139,24 @@ impl FlatMap {
     }
 
     /// The list of cell `k` as the shader finds it (for tests).
+    /// The entries as the shader reads them: `(node, density as f32 bits)`
+    /// pairs, or with `wide`, `(node, density hi, density lo, 0)` quadruples
+    /// (see [`split`]).
+    pub fn entry_words(&self, wide: bool) -> Vec<u32> {
+        let mut w = Vec::with_capacity(self.entries.len() * if wide { 4 } else { 2 });
+        for e in &self.entries {
+            let [hi, lo] = split(e.density);
+            w.push(e.node);
+            w.push(hi.to_bits());
+            if wide {
+                w.extend([lo.to_bits(), 0]);
+            }
+        }
+        w
+    }
+
     #[cfg(test)]
-    fn list<const D: usize>(&self, k: [i32; D]) -> &[[u32; 2]] {
+    fn list<const D: usize>(&self, k: [i32; D]) -> &[Entry] {
         let bits = self.brick_bits;
         let mask = (1i32 << bits) - 1;
         let cpb = 1usize << (bits as usize * D);
@@ -164,15 +202,35 @@ mod tests {
             let list = f.list(k);
             assert_eq!(list.len(), m.cell(k).len());
             let e = m.cell(k).iter().find(|e| e.node == node).unwrap();
-            let rho = if e.hits <= 0.0 {
+            let density = if e.hits <= 0.0 {
                 0.0
             } else {
-                (e.hits as f64 / e.distance as f64 * 0.5) as f32
+                e.hits as f64 / e.distance as f64 * 0.5
             };
-            assert!(list.contains(&[node, rho.to_bits()]));
+            assert!(list.contains(&Entry { node, density }));
         }
         assert!(f.list([100, 100, 100]).is_empty());
         let f2 = FlatMap::build(&DpMap::<2>::new(0.1));
         assert!(f2.list([0, 0]).is_empty());
+    }
+
+    #[test]
+    fn split_halves_rejoin_to_about_48_bits() {
+        for x in [0.0, 1.0 / 3.0, 1e-7, 12345.678901234, -2.5e-3, 0.1 / 35.0] {
+            let [hi, lo] = split(x);
+            assert_eq!(hi, x as f32);
+            let back = hi as f64 + lo as f64;
+            assert!((back - x).abs() <= x.abs() * 2f64.powi(-47), "{x}: {back}");
+        }
+        let f = FlatMap {
+            entries: vec![Entry {
+                node: 7,
+                density: 0.1,
+            }],
+            ..Default::default()
+        };
+        let [hi, lo] = split(0.1);
+        assert_eq!(f.entry_words(false), [7, hi.to_bits()]);
+        assert_eq!(f.entry_words(true), [7, hi.to_bits(), lo.to_bits(), 0]);
     }
 }

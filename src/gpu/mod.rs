@@ -6,17 +6,26 @@
 //! walks the beam (Amanatides–Woo, in cell units relative to the sensor's
 //! cell), resolves each crossed cell for the candidate's particle from the
 //! flattened DP-map ([`flatten`]) and the depth-first numbering, and writes
-//! the beam likelihood (f32). The host reads the per-beam values back once,
+//! the beam likelihood. The host reads the per-beam values back once,
 //! applies the floor and the log in f64 and sums them per candidate.
 //!
-//! Uploads per call: the candidates (80 B each), the beams of the subset
-//! (32 B each) and 48 B of parameters. The map is flattened and uploaded
+//! **Precision** ([`GpuPrecision`]): where the adapter has `SHADER_F64` the
+//! shader works in f64 throughout (its own f64 `exp`, since Vulkan has
+//! none), and scores equal the CPU's to ~1e-12; that is what makes whole
+//! runs reproduce the CPU's trajectory, because a resampling draw can turn
+//! on a 1e-4 nat difference (docs/GPU.md). Elsewhere it works in f32 and
+//! scores agree to ~2e-4 nats. Host values travel as (hi, lo) f32 pairs
+//! (`flatten::split`) so both modes read the same buffers.
+//!
+//! Uploads per call: the candidates (144 B each), the beams of the subset
+//! (64 B each) and 64 B of parameters. The map is flattened and uploaded
 //! only when [`DpMap::version`] changes (once per filter step, not once per
 //! culling pass); the numbering only when it changes. Buffers only grow.
 
 pub(crate) mod flatten;
 
 use crate::ancestry::Numbering;
+pub use crate::backend::GpuPrecision;
 use crate::dpmap::DpMap;
 use crate::geometry::Pose;
 use crate::laser_model::Trace;
@@ -27,10 +36,22 @@ use flatten::FlatMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
-const SHADER: &str = include_str!("../../shaders/likelihood.wgsl");
+const SHADER_BODY: &str = include_str!("../../shaders/likelihood.wgsl");
+const PRELUDE_F32: &str = include_str!("../../shaders/real_f32.wgsl");
+const PRELUDE_F64: &str = include_str!("../../shaders/real_f64.wgsl");
 const WORKGROUP: u32 = 64;
 
-/// Shader parameters (`Params` in the WGSL).
+/// The shader source for `precision` (`F32` or `F64`): a prelude that
+/// defines the scalar type, then the shared body.
+fn shader_source(precision: GpuPrecision) -> String {
+    let prelude = match precision {
+        GpuPrecision::F64 => PRELUDE_F64,
+        _ => PRELUDE_F32,
+    };
+    format!("{prelude}\n{SHADER_BODY}")
+}
+
+/// Shader parameters (`Params` in the WGSL); `[f32; 2]` are (hi, lo) pairs.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct Params {
@@ -38,28 +59,40 @@ struct Params {
     n_beams: u32,
     brick_bits: u32,
     table_mask: u32,
-    two_var: f32,
-    max_error: f32,
-    prior: f32,
     dim: u32,
-    _pad: [u32; 4],
+    _pad: [u32; 3],
+    two_var: [f32; 2],
+    max_error: [f32; 2],
+    prior: [f32; 2],
+    _pad2: [f32; 2],
 }
 
-/// One candidate (`Cand` in the WGSL).
+/// One candidate (`Cand` in the WGSL); each `[[f32; 4]; 2]` is (hi, lo).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct GpuCand {
     cell: [i32; 4],
-    frac: [f32; 4],
-    rot: [[f32; 4]; 3],
+    frac: [[f32; 4]; 2],
+    rot: [[[f32; 4]; 2]; 3],
 }
 
-/// One beam (`Beam` in the WGSL).
+/// One beam (`Beam` in the WGSL); each `[[f32; 4]; 2]` is (hi, lo).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct GpuBeam {
-    dir: [f32; 4],
-    span: [f32; 4],
+    dir: [[f32; 4]; 2],
+    span: [[f32; 4]; 2],
+}
+
+/// Splits each component of `v` into the (hi, lo) halves of `flatten::split`.
+fn split4(v: [f64; 4]) -> [[f32; 4]; 2] {
+    let mut out = [[0.0f32; 4]; 2];
+    for (i, x) in v.into_iter().enumerate() {
+        let [hi, lo] = flatten::split(x);
+        out[0][i] = hi;
+        out[1][i] = lo;
+    }
+    out
 }
 
 /// A device buffer that only grows.
@@ -145,6 +178,7 @@ struct State {
     numbering: GrowBuffer,
     out: GrowBuffer,
     staging: GrowBuffer,
+    precision: GpuPrecision,
     map_key: Option<MapKey>,
     map_brick_bits: u32,
     map_table_mask: u32,
@@ -171,8 +205,8 @@ pub struct CallStats {
 
 /// Scores candidates on a GPU through wgpu (Vulkan), for `D` = 2 or 3.
 ///
-/// Agrees with [`CpuScorer`] to f32 precision (the shader works in f32, the
-/// per-candidate sum is f64). Through the [`Scorer`] trait a failing device
+/// Agrees with [`CpuScorer`] to ~1e-12 in f64 mode and ~2e-4 nats in f32
+/// mode (see [`GpuPrecision`]; the per-candidate sum is f64 in both). Through the [`Scorer`] trait a failing device
 /// falls back to the CPU for that call and says so once on stderr;
 /// [`GpuScorer::try_score`] reports the error instead.
 pub struct GpuScorer<const D: usize> {
@@ -196,14 +230,25 @@ fn gpu_err(what: &str, e: impl std::fmt::Display) -> Error {
 
 impl<const D: usize> GpuScorer<D> {
     /// A scorer on the first Vulkan adapter; `WGPU_BACKEND` (e.g. `gl`)
-    /// overrides the backends searched, `WGPU_ADAPTER_NAME` picks an adapter.
+    /// overrides the backends searched, `WGPU_ADAPTER_NAME` picks an adapter,
+    /// `DPSLAM_GPU_PRECISION` the precision (default `auto`).
     pub fn new() -> Result<Self> {
-        Self::with_backends(wgpu::Backends::VULKAN.with_env())
+        Self::with_precision(GpuPrecision::from_env()?)
+    }
+
+    /// A scorer on the first Vulkan adapter (as [`GpuScorer::new`]) with the
+    /// given precision.
+    pub fn with_precision(precision: GpuPrecision) -> Result<Self> {
+        Self::open(wgpu::Backends::VULKAN.with_env(), precision)
     }
 
     /// A scorer on the first adapter of `backends` (this build compiles in
     /// Vulkan only, so any other choice finds no adapter).
     pub fn with_backends(backends: wgpu::Backends) -> Result<Self> {
+        Self::open(backends, GpuPrecision::Auto)
+    }
+
+    fn open(backends: wgpu::Backends, precision: GpuPrecision) -> Result<Self> {
         if !(D == 2 || D == 3) {
             return Err(Error::Gpu(format!(
                 "the GPU scorer supports 2-D and 3-D maps, not {D}-D"
@@ -224,9 +269,27 @@ impl<const D: usize> GpuScorer<D> {
         })?;
         let info = adapter.get_info();
         let limits = adapter.limits();
+        let has_f64 = adapter.features().contains(wgpu::Features::SHADER_F64);
+        let precision = match precision {
+            GpuPrecision::Auto if has_f64 => GpuPrecision::F64,
+            GpuPrecision::Auto => GpuPrecision::F32,
+            GpuPrecision::F64 if !has_f64 => {
+                return Err(Error::Gpu(format!(
+                    "the adapter {} has no f64 shader support: use DPSLAM_GPU_PRECISION=f32 \
+                     (or auto)",
+                    info.name
+                )));
+            }
+            p => p,
+        };
+        let required_features = if precision == GpuPrecision::F64 {
+            wgpu::Features::SHADER_F64
+        } else {
+            wgpu::Features::empty()
+        };
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("dpslam"),
-            required_features: wgpu::Features::empty(),
+            required_features,
             required_limits: limits.clone(),
             ..Default::default()
         }))
@@ -240,7 +303,7 @@ impl<const D: usize> GpuScorer<D> {
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("likelihood.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+            source: wgpu::ShaderSource::Wgsl(shader_source(precision).into()),
         });
         let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("likelihood"),
@@ -287,6 +350,7 @@ impl<const D: usize> GpuScorer<D> {
             queue,
             pipeline,
             layout,
+            precision,
             map_key: None,
             map_brick_bits: 0,
             map_table_mask: 0,
@@ -307,6 +371,14 @@ impl<const D: usize> GpuScorer<D> {
     /// The adapter in use, e.g. "llvmpipe (LLVM 15.0.6, 256 bits) (Vulkan, Cpu)".
     pub fn adapter(&self) -> &str {
         &self.adapter
+    }
+
+    /// The precision the shader runs in: `F32` or `F64`, never `Auto`.
+    pub fn precision(&self) -> GpuPrecision {
+        self.state
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .precision
     }
 
     /// Transfers and dispatches of the last successful call.
@@ -367,10 +439,11 @@ impl State {
         let mut uploaded = false;
         if self.map_key != Some(key) {
             let flat = FlatMap::build(map);
+            let words = flat.entry_words(self.precision == GpuPrecision::F64);
             let (t, h, e) = (
                 bytemuck::cast_slice::<_, u8>(&flat.table),
                 bytemuck::cast_slice::<_, u8>(&flat.headers),
-                bytemuck::cast_slice::<_, u8>(&flat.entries),
+                bytemuck::cast_slice::<_, u8>(&words),
             );
             self.fits("map's cell headers", h.len())?;
             self.fits("map's entries", e.len())?;
@@ -443,21 +516,18 @@ impl State {
                     (b.range + laser.trace_past).min(laser.max_range.max(b.range)),
                 )),
             };
-            let mut dir = [0.0f32; 4];
-            for (d, v) in dir.iter_mut().zip(b.dir) {
-                *d = v as f32;
-            }
-            dir[3] = (b.range / cell) as f32;
+            let mut dir = [0.0f64; 4];
+            dir[..D].copy_from_slice(&b.dir);
+            dir[3] = b.range / cell;
+            // The flags travel in `hi` only; their `lo` halves are 0.
             let span = match span {
-                Some((t0, t1)) => [
-                    (t0 / cell) as f32,
-                    (t1 / cell) as f32,
-                    b.no_return as u8 as f32,
-                    0.0,
-                ],
+                Some((t0, t1)) => [t0 / cell, t1 / cell, b.no_return as u8 as f64, 0.0],
                 None => [0.0, 0.0, 1.0, 1.0],
             };
-            GpuBeam { dir, span }
+            GpuBeam {
+                dir: split4(dir),
+                span: split4(span),
+            }
         }));
 
         let mut gc = std::mem::take(&mut self.scratch_cands);
@@ -466,39 +536,40 @@ impl State {
             let sensor = c.pose.compose(&ctx.scan.sensor);
             let origin = sensor.translation();
             let mut cellk = [0i32; 4];
-            let mut frac = [0.0f32; 4];
+            let mut frac = [0.0f64; 4];
             for i in 0..D {
                 let o = origin[i] / cell;
                 let k = o.floor();
                 cellk[i] = k as i32;
-                frac[i] = (o - k) as f32;
+                frac[i] = o - k;
             }
             let leaf =
                 *ctx.numbering.enter.get(c.node as usize).ok_or_else(|| {
                     Error::Gpu(format!("candidate node {} is not numbered", c.node))
                 })?;
             cellk[3] = leaf as i32;
-            let mut rot = [[0.0f32; 4]; 3];
+            let mut rot = [[0.0f64; 4]; 3];
             rot[2][2] = 1.0;
             for col in 0..D {
                 let mut e = [0.0f64; D];
                 e[col] = 1.0;
                 let v = sensor.rotate(e);
                 for (row, r) in rot.iter_mut().enumerate().take(D) {
-                    r[col] = v[row] as f32;
+                    r[col] = v[row];
                 }
             }
             gc.push(GpuCand {
                 cell: cellk,
-                frac,
-                rot,
+                frac: split4(frac),
+                rot: rot.map(split4),
             });
         }
 
         let n_cand = candidates.len() as u32;
         let n_beams = gb.len() as u32;
         let total = n_cand as u64 * n_beams as u64;
-        let out_bytes = total * 4;
+        let wide = self.precision == GpuPrecision::F64;
+        let out_bytes = total * if wide { 8 } else { 4 };
         if total > u32::MAX as u64 || out_bytes > self.max_binding {
             return Err(Error::Gpu(format!(
                 "{n_cand} candidates × {n_beams} beams is too much for one call: split the candidates"
@@ -509,11 +580,12 @@ impl State {
             n_beams,
             brick_bits: self.map_brick_bits,
             table_mask: self.map_table_mask,
-            two_var: (2.0 * laser.variance / (cell * cell)) as f32,
-            max_error: (laser.max_error / cell) as f32,
-            prior: (laser.prior_density * cell) as f32,
             dim: D as u32,
-            _pad: [0; 4],
+            _pad: [0; 3],
+            two_var: flatten::split(2.0 * laser.variance / (cell * cell)),
+            max_error: flatten::split(laser.max_error / cell),
+            prior: flatten::split(laser.prior_density * cell),
+            _pad2: [0.0; 2],
         };
         self.queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
@@ -573,10 +645,19 @@ impl State {
             let view = slice
                 .get_mapped_range()
                 .map_err(|e| gpu_err("reading back", e))?;
-            let vals: &[f32] =
-                bytemuck::try_cast_slice(&view).map_err(|e| gpu_err("reading back", e))?;
+            let vals: Vec<f64> = if wide {
+                bytemuck::try_cast_slice::<_, f64>(&view)
+                    .map_err(|e| gpu_err("reading back", e))?
+                    .to_vec()
+            } else {
+                bytemuck::try_cast_slice::<_, f32>(&view)
+                    .map_err(|e| gpu_err("reading back", e))?
+                    .iter()
+                    .map(|&l| l as f64)
+                    .collect()
+            };
             vals.chunks_exact(n_beams as usize)
-                .map(|c| c.iter().map(|&l| (l as f64).max(floor).ln()).sum())
+                .map(|c| c.iter().map(|&l| l.max(floor).ln()).sum())
                 .collect()
         };
         self.staging.buf.unmap();

@@ -103,6 +103,8 @@ pub struct Map2dSummary {
     pub mean_after_quick: f64,
     /// Mean number of samples surviving all culling.
     pub mean_after_full: f64,
+    /// Scan-likelihood backend used: "cpu", or "gpu", its precision and adapter.
+    pub backend: String,
     /// Seed.
     pub seed: u64,
     /// Worker threads.
@@ -178,7 +180,8 @@ pub fn run_map2d_with(
     backend: crate::backend::Backend,
 ) -> Result<Map2dSummary> {
     cfg.validate()?;
-    let mut scorer = Some(crate::backend::make_scorer::<2, Pose2>(backend)?.0);
+    let (scorer, backend_used) = crate::backend::make_scorer::<2, Pose2>(backend)?;
+    let mut scorer = Some(scorer);
     let start = Instant::now();
     let mut reader = open_log2d(log)?;
     let format = reader.format();
@@ -289,6 +292,7 @@ pub fn run_map2d_with(
         tree_nodes: filter.tree().len(),
         mean_after_quick: stats.iter().map(|s| s.after_quick as f64).sum::<f64>() / n_steps,
         mean_after_full: stats.iter().map(|s| s.after_full as f64).sum::<f64>() / n_steps,
+        backend: backend_used,
         seed: cfg.seed,
         threads: rayon::current_num_threads(),
     };

@@ -140,6 +140,8 @@ pub struct Map3dSummary {
     pub mean_after_quick: f64,
     /// Mean number of samples surviving all culling.
     pub mean_after_full: f64,
+    /// Scan-likelihood backend used: "cpu", or "gpu", its precision and adapter.
+    pub backend: String,
     /// Seed.
     pub seed: u64,
     /// Worker threads.
@@ -342,7 +344,8 @@ pub fn run_map3d_with(
         0,
     );
     filter.set_map_update(&cfg.map);
-    filter.set_scorer(crate::backend::make_scorer::<3, Pose3>(opts.backend)?.0);
+    let (scorer, backend_used) = crate::backend::make_scorer::<3, Pose3>(opts.backend)?;
+    filter.set_scorer(scorer);
     proposal.push(0, proposal.prepare(&first.points));
     let mut points_per_sweep = vec![first.points.len()];
     let mut beams_per_sweep = vec![scan0.beams.len()];
@@ -506,6 +509,7 @@ pub fn run_map3d_with(
         tree_nodes: filter.tree().len(),
         mean_after_quick: stats.iter().map(|s| s.after_quick as f64).sum::<f64>() / steps,
         mean_after_full: stats.iter().map(|s| s.after_full as f64).sum::<f64>() / steps,
+        backend: backend_used,
         seed: cfg.seed,
         threads: rayon::current_num_threads(),
     };

@@ -1,0 +1,66 @@
+// Prelude of likelihood.wgsl for adapters with SHADER_F64: f64 throughout.
+//
+// Vulkan has no f64 `exp` (GLSL.std.450 Exp is 16/32-bit only), so `exp_neg`
+// is written out with f64 multiply and add: Cody–Waite reduction by ln 2
+// and a Taylor polynomial, accurate to a few ulp, which is what makes the
+// scores equal the CPU's (f64, libm) to ~1e-12 instead of ~1e-4.
+
+alias real = f64;
+
+// (node id, density hi, density lo, unused): the density in stops per cell
+// length as two f32s whose sum is the f64 value to ~48 bits.
+@group(0) @binding(5) var<storage, read> entries: array<vec4<u32>>;
+
+fn entry_node(i: u32) -> u32 {
+    return entries[i].x;
+}
+
+fn entry_density(i: u32) -> real {
+    let e = entries[i];
+    return f64(bitcast<f32>(e.y)) + f64(bitcast<f32>(e.z));
+}
+
+// exp(−x) for finite x (the callers pass x ≥ 0). exp(−x) = 2^−k · exp(−r) with
+// r = x − k ln 2 ∈ [−ln2/2, ln2/2]; ln 2 = LN2_HI + LN2_LO where LN2_HI has
+// 21 trailing zero bits, so k · LN2_HI is exact (fdlibm's split). The Taylor
+// series of exp(−r) to r¹⁴ leaves < 1e-19 relative; 2^−k is built by
+// squaring powers of two, which is exact (down to subnormals).
+fn exp_neg(x: real) -> real {
+    if (x > 745.0) {
+        return 0.0;
+    }
+    if (x < -709.0) {
+        return 1.0e308;
+    }
+    let k = floor(x * 1.4426950408889634 + 0.5);
+    let r = (x - k * 6.93147180369123816490e-01) - k * 1.90821492927058770002e-10;
+    var p: real = 1.0;
+    for (var n = 14; n >= 1; n = n - 1) {
+        p = 1.0 + p * (-r) / real(n);
+    }
+    var e = i32(k);
+    var base: real = 0.5;
+    if (e < 0) {
+        e = -e;
+        base = 2.0;
+    }
+    var scale: real = 1.0;
+    loop {
+        if (e == 0) {
+            break;
+        }
+        if ((e & 1) == 1) {
+            scale = scale * base;
+        }
+        base = base * base;
+        e = e >> 1u;
+    }
+    return p * scale;
+}
+
+// 1 − exp(−x), written as the CPU writes it (src/laser_model.rs), so that
+// both round the same way to within an ulp.
+fn stop_prob(x: real) -> real {
+    return 1.0 - exp_neg(x);
+}
+
