@@ -38,13 +38,18 @@ pub enum Backend {
     Auto,
 }
 
+/// The command-line spelling (`cpu`, `gpu`, `auto`), as serde writes it.
 impl std::fmt::Display for Backend {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Backend::Cpu => "cpu",
-            Backend::Gpu => "gpu",
-            Backend::Auto => "auto",
-        })
+        value_name(self, f)
+    }
+}
+
+/// Writes a `ValueEnum`'s command-line name.
+fn value_name(v: &impl clap::ValueEnum, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+    match v.to_possible_value() {
+        Some(p) => f.write_str(p.get_name()),
+        None => Err(std::fmt::Error),
     }
 }
 
@@ -73,13 +78,10 @@ pub enum GpuPrecision {
     F64,
 }
 
+/// The command-line spelling (`auto`, `f32`, `f64`), as serde writes it.
 impl std::fmt::Display for GpuPrecision {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            GpuPrecision::Auto => "auto",
-            GpuPrecision::F32 => "f32",
-            GpuPrecision::F64 => "f64",
-        })
+        value_name(self, f)
     }
 }
 
@@ -172,8 +174,14 @@ mod tests {
             let j = serde_json::to_string(b).unwrap();
             assert_eq!(j, format!("\"{b}\""));
         }
-        for p in GpuPrecision::value_variants() {
-            assert_eq!(GpuPrecision::from_str(&p.to_string(), false).unwrap(), *p);
-        }
+        let names: Vec<String> = GpuPrecision::value_variants()
+            .iter()
+            .map(|p| {
+                assert_eq!(GpuPrecision::from_str(&p.to_string(), false).unwrap(), *p);
+                assert_eq!(serde_json::to_string(p).unwrap(), format!("\"{p}\""));
+                p.to_string()
+            })
+            .collect();
+        assert_eq!(names, ["auto", "f32", "f64"]);
     }
 }

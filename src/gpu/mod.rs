@@ -206,9 +206,10 @@ pub struct CallStats {
 /// Scores candidates on a GPU through wgpu (Vulkan), for `D` = 2 or 3.
 ///
 /// Agrees with [`CpuScorer`] to ~1e-12 in f64 mode and ~2e-4 nats in f32
-/// mode (see [`GpuPrecision`]; the per-candidate sum is f64 in both). Through the [`Scorer`] trait a failing device
-/// falls back to the CPU for that call and says so once on stderr;
-/// [`GpuScorer::try_score`] reports the error instead.
+/// mode (see [`GpuPrecision`]; the per-candidate sum is f64 in both).
+/// Through the [`Scorer`] trait a failing device falls back to the CPU for
+/// that call and says so once on stderr; [`GpuScorer::try_score`] reports
+/// the error instead.
 pub struct GpuScorer<const D: usize> {
     state: Mutex<State>,
     fallback: CpuScorer<D>,

@@ -105,6 +105,8 @@ pub struct Map2dSummary {
     pub mean_after_full: f64,
     /// Scan-likelihood backend used: "cpu", or "gpu", its precision and adapter.
     pub backend: String,
+    /// Problems with the input worth a look (also printed on stderr).
+    pub warnings: Vec<String>,
     /// Seed.
     pub seed: u64,
     /// Worker threads.
@@ -112,16 +114,24 @@ pub struct Map2dSummary {
 }
 
 /// Converts one log scan to the filter's form: evenly thinned to at most
-/// `max_beams` beams, readings beyond `max_range` (or none) as "no return".
+/// `max_beams` beams, readings beyond `max_range` (m), or none, as "no return".
+///
+/// Readings at or above the log's declared maximum (`s.max_range`) are "no
+/// return" too, unless `max_range` is above that maximum: a configured
+/// `laser.max_range` beyond the declared one says the header understates
+/// the laser (edmonton's declares 10 m and holds returns to 50 m), and real
+/// returns below it are kept.
 pub fn to_scan(s: &LaserScan2d, sensor: Pose2, max_beams: usize, max_range: f64) -> Scan<2, Pose2> {
     let n = s.ranges.len();
     let stride = n.div_ceil(max_beams.max(1)).max(1);
+    let trust_beyond_declared = max_range > s.max_range;
     let beams = (0..n)
         .step_by(stride)
         .map(|i| {
             let a = s.angle_min + i as f64 * s.angle_increment;
             let r = s.ranges[i];
-            let no_return = s.is_no_return(i) || r > max_range;
+            let kept = trust_beyond_declared && r.is_finite() && r > 0.0;
+            let no_return = (s.is_no_return(i) && !kept) || r > max_range;
             Beam {
                 dir: [a.cos(), a.sin()],
                 range: if no_return { max_range } else { r },
@@ -130,6 +140,15 @@ pub fn to_scan(s: &LaserScan2d, sensor: Pose2, max_beams: usize, max_range: f64)
         })
         .collect();
     Scan { sensor, beams }
+}
+
+/// Readings of `s` clearly above its declared maximum (by more than 1 %):
+/// real returns if the declaration is wrong, which `map2d` reports.
+pub fn readings_above_declared_max(s: &LaserScan2d) -> usize {
+    s.ranges
+        .iter()
+        .filter(|r| r.is_finite() && **r > s.max_range * 1.01)
+        .count()
 }
 
 /// Map images show, per cell, the probability that a beam is stopped within
@@ -198,9 +217,23 @@ pub fn run_map2d_with(
     let mut beams_per_scan = 0;
     let mut first_time = None;
     let mut last_time = None;
+    // Readings above the log's declared maximum: (count, of all, largest, declared).
+    let mut above = (0usize, 0usize, 0.0f64, 0.0f64);
 
     while let Some(item) = reader.next() {
         let s = item?;
+        above.0 += readings_above_declared_max(&s);
+        above.1 += s.ranges.len();
+        above.3 = s.max_range;
+        if let Some(m) = s
+            .ranges
+            .iter()
+            .copied()
+            .filter(|r| r.is_finite())
+            .reduce(f64::max)
+        {
+            above.2 = above.2.max(m);
+        }
         let index = stamps.len();
         let t = s.timestamp.unwrap_or(index as f64);
         if s.timestamp.is_some() {
@@ -273,6 +306,20 @@ pub fn run_map2d_with(
         _ => None,
     };
     let n_steps = stats.len().max(1) as f64;
+    let mut warnings = Vec::new();
+    let (n_above, n_all, largest, declared) = above;
+    if n_above * 100 >= n_all.max(1) && max_range <= declared {
+        warnings.push(format!(
+            "{}: {:.0} % of the laser readings lie above the log's declared maximum range \
+             of {declared} m (up to {largest:.1} m) and were taken as \"no return\"; if the \
+             declaration is wrong, set laser.max_range (m) above it to use them",
+            log.display(),
+            100.0 * n_above as f64 / n_all as f64
+        ));
+    }
+    for w in &warnings {
+        eprintln!("dpslam: warning: {w}");
+    }
     let summary = Map2dSummary {
         version: env!("CARGO_PKG_VERSION").to_string(),
         input: log.to_path_buf(),
@@ -293,6 +340,7 @@ pub fn run_map2d_with(
         mean_after_quick: stats.iter().map(|s| s.after_quick as f64).sum::<f64>() / n_steps,
         mean_after_full: stats.iter().map(|s| s.after_full as f64).sum::<f64>() / n_steps,
         backend: backend_used,
+        warnings,
         seed: cfg.seed,
         threads: rayon::current_num_threads(),
     };
@@ -303,4 +351,61 @@ pub fn run_map2d_with(
     super::write_atomic(&out.join("config.toml"), cfg.to_toml().as_bytes())?;
     super::write_json(&out.join("run.json"), &summary)?;
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scan(ranges: Vec<f64>, declared: f64) -> LaserScan2d {
+        LaserScan2d {
+            timestamp: None,
+            odometry: Pose2::identity(),
+            logged_pose: None,
+            ranges,
+            angle_min: 0.0,
+            angle_increment: 0.01,
+            max_range: declared,
+            line: 1,
+        }
+    }
+
+    fn flags(s: &Scan<2, Pose2>) -> Vec<(bool, f64)> {
+        s.beams.iter().map(|b| (b.no_return, b.range)).collect()
+    }
+
+    #[test]
+    fn a_configured_range_above_the_declared_maximum_keeps_real_returns() {
+        let s = scan(vec![5.0, 15.0, 10.0, f64::NAN, 25.0], 10.0);
+        assert_eq!(readings_above_declared_max(&s), 2);
+        // Default: the declared 10 m rules.
+        let d = to_scan(&s, Pose2::identity(), 181, 10.0);
+        assert_eq!(
+            flags(&d),
+            [
+                (false, 5.0),
+                (true, 10.0),
+                (true, 10.0),
+                (true, 10.0),
+                (true, 10.0)
+            ]
+        );
+        // laser.max_range = 20 above the declared 10 m: 15 m is a return.
+        let c = to_scan(&s, Pose2::identity(), 181, 20.0);
+        assert_eq!(
+            flags(&c),
+            [
+                (false, 5.0),
+                (false, 15.0),
+                (false, 10.0),
+                (true, 20.0),
+                (true, 20.0)
+            ]
+        );
+        // A usable range below the declared maximum changes nothing but the cut.
+        let s = scan(vec![5.0, 15.0, 81.9], 81.9);
+        let u = to_scan(&s, Pose2::identity(), 181, 20.0);
+        assert_eq!(flags(&u), [(false, 5.0), (false, 15.0), (true, 20.0)]);
+        assert_eq!(readings_above_declared_max(&s), 0);
+    }
 }
