@@ -201,6 +201,14 @@ pub struct LaserConfig {
     pub max_range: f64,
     /// Use at most this many beams per scan, evenly spaced (release: 180).
     pub max_beams: usize,
+    /// Keep the log's declared maximum range (its "no return" threshold)
+    /// even where the readings contradict it. By default (false) a log whose
+    /// readings lie, for ≥ 1 % of them, clearly between the declared maximum
+    /// and the log's largest reading is taken to understate its laser: those
+    /// readings are returns and only the largest value means "no return"
+    /// (CARMEN's `robot_front_laser_max` is a navigation setting, not the
+    /// sensor's limit, in some logs).
+    pub trust_declared_max_range: bool,
 }
 
 /// The C/D/T motion model of DP-SLAM (dissertation ch. 6): motion along the
@@ -281,6 +289,7 @@ impl Default for LaserConfig {
             quick_after_cells: 3.0,
             max_range: 0.0,
             max_beams: 181,
+            trust_declared_max_range: false,
         }
     }
 }

@@ -142,13 +142,70 @@ pub fn to_scan(s: &LaserScan2d, sensor: Pose2, max_beams: usize, max_range: f64)
     Scan { sensor, beams }
 }
 
-/// Readings of `s` clearly above its declared maximum (by more than 1 %):
-/// real returns if the declaration is wrong, which `map2d` reports.
-pub fn readings_above_declared_max(s: &LaserScan2d) -> usize {
-    s.ranges
-        .iter()
-        .filter(|r| r.is_finite() && **r > s.max_range * 1.01)
-        .count()
+/// How a log's readings sit against its declared maximum range, from one
+/// pass over the log before mapping (parsing is cheap next to SLAM).
+///
+/// Some logs declare a maximum below what their laser returns: edmonton's
+/// header gives `robot_front_laser_max 10` (a navigation setting) while a
+/// third of its readings are real returns between 10 and 51 m, with 51.15 m
+/// marking "no return". Taking the declaration at its word drops those
+/// returns and leaves open spaces featureless.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RangeSurvey {
+    /// Readings seen (every beam of every scan).
+    pub readings: usize,
+    /// Finite readings above 1.01 × the declared maximum and below 0.999 ×
+    /// the largest reading: neither under the declaration nor saturated.
+    pub between: usize,
+    /// Largest finite reading, m.
+    pub largest: f64,
+    /// Largest declared maximum range, m.
+    pub declared: f64,
+}
+
+impl RangeSurvey {
+    /// Surveys every scan of `log`.
+    pub fn of_log(log: &Path) -> Result<Self> {
+        Self::of_scans(open_log2d(log)?)
+    }
+
+    /// Surveys `scans` (a log's, in any order).
+    pub fn of_scans(scans: impl IntoIterator<Item = Result<LaserScan2d>>) -> Result<Self> {
+        let mut survey = Self::default();
+        // Readings above their scan's declaration, by millimetre: whether
+        // each is saturated is known only once the largest reading is.
+        let mut above: rustc_hash::FxHashMap<u64, usize> = Default::default();
+        for item in scans {
+            let s = item?;
+            survey.readings += s.ranges.len();
+            survey.declared = survey.declared.max(s.max_range);
+            for &r in s.ranges.iter().filter(|r| r.is_finite()) {
+                survey.largest = survey.largest.max(r);
+                if r > s.max_range * 1.01 {
+                    *above.entry((r * 1000.0) as u64).or_default() += 1;
+                }
+            }
+        }
+        let saturated = (survey.largest * 0.999 * 1000.0) as u64;
+        survey.between = above
+            .iter()
+            .filter(|&(&mm, _)| mm < saturated)
+            .map(|(_, &n)| n)
+            .sum();
+        Ok(survey)
+    }
+
+    /// Whether ≥ 1 % of the readings contradict the declared maximum.
+    pub fn contradicts_declaration(&self) -> bool {
+        self.readings > 0 && self.between * 100 >= self.readings
+    }
+
+    /// The "no return" threshold to use, m: the largest reading where the
+    /// declaration is contradicted (that value is the laser's saturation),
+    /// else `None` (keep each scan's declared maximum).
+    pub fn sensor_max(&self, trust_declared: bool) -> Option<f64> {
+        (!trust_declared && self.contradicts_declaration()).then_some(self.largest)
+    }
 }
 
 /// Map images show, per cell, the probability that a beam is stopped within
@@ -217,22 +274,13 @@ pub fn run_map2d_with(
     let mut beams_per_scan = 0;
     let mut first_time = None;
     let mut last_time = None;
-    // Readings above the log's declared maximum: (count, of all, largest, declared).
-    let mut above = (0usize, 0usize, 0.0f64, 0.0f64);
+    let survey = RangeSurvey::of_log(log)?;
+    let sensor_max = survey.sensor_max(cfg.laser.trust_declared_max_range);
 
     while let Some(item) = reader.next() {
-        let s = item?;
-        above.0 += readings_above_declared_max(&s);
-        above.1 += s.ranges.len();
-        above.3 = s.max_range;
-        if let Some(m) = s
-            .ranges
-            .iter()
-            .copied()
-            .filter(|r| r.is_finite())
-            .reduce(f64::max)
-        {
-            above.2 = above.2.max(m);
+        let mut s = item?;
+        if let Some(m) = sensor_max {
+            s.max_range = m;
         }
         let index = stamps.len();
         let t = s.timestamp.unwrap_or(index as f64);
@@ -307,14 +355,22 @@ pub fn run_map2d_with(
     };
     let n_steps = stats.len().max(1) as f64;
     let mut warnings = Vec::new();
-    let (n_above, n_all, largest, declared) = above;
-    if n_above * 100 >= n_all.max(1) && max_range <= declared {
+    let share = 100.0 * survey.between as f64 / survey.readings.max(1) as f64;
+    let (declared, largest) = (survey.declared, survey.largest);
+    if let Some(m) = sensor_max {
         warnings.push(format!(
-            "{}: {:.0} % of the laser readings lie above the log's declared maximum range \
-             of {declared} m (up to {largest:.1} m) and were taken as \"no return\"; if the \
-             declaration is wrong, set laser.max_range (m) above it to use them",
+            "{}: {share:.0} % of the laser readings lie between the log's declared maximum \
+             range of {declared} m and its largest reading, {m:.2} m: taken as returns, with \
+             {m:.2} m as \"no return\" (set laser.trust_declared_max_range = true to keep \
+             the declaration)",
             log.display(),
-            100.0 * n_above as f64 / n_all as f64
+        ));
+    } else if survey.contradicts_declaration() && max_range <= declared {
+        warnings.push(format!(
+            "{}: {share:.0} % of the laser readings lie above the log's declared maximum range \
+             of {declared} m (up to {largest:.1} m) and were taken as \"no return\" \
+             (laser.trust_declared_max_range = true)",
+            log.display(),
         ));
     }
     for w in &warnings {
@@ -377,7 +433,6 @@ mod tests {
     #[test]
     fn a_configured_range_above_the_declared_maximum_keeps_real_returns() {
         let s = scan(vec![5.0, 15.0, 10.0, f64::NAN, 25.0], 10.0);
-        assert_eq!(readings_above_declared_max(&s), 2);
         // Default: the declared 10 m rules.
         let d = to_scan(&s, Pose2::identity(), 181, 10.0);
         assert_eq!(
@@ -406,6 +461,48 @@ mod tests {
         let s = scan(vec![5.0, 15.0, 81.9], 81.9);
         let u = to_scan(&s, Pose2::identity(), 181, 20.0);
         assert_eq!(flags(&u), [(false, 5.0), (false, 15.0), (true, 20.0)]);
-        assert_eq!(readings_above_declared_max(&s), 0);
+    }
+
+    #[test]
+    fn readings_between_the_declaration_and_saturation_overrule_it() {
+        // Declared 10 m; returns at 15 and 30 m; 51.15 m is the saturation value.
+        let scans = || {
+            (0..10).map(|i| {
+                Ok(scan(
+                    vec![5.0, 15.0 + i as f64, 51.15, f64::NAN, 30.0, 51.15],
+                    10.0,
+                ))
+            })
+        };
+        let survey = RangeSurvey::of_scans(scans()).unwrap();
+        assert_eq!(survey.readings, 60);
+        assert_eq!(survey.between, 20);
+        assert_eq!(survey.largest, 51.15);
+        assert!(survey.contradicts_declaration());
+        assert_eq!(survey.sensor_max(false), Some(51.15));
+        assert_eq!(survey.sensor_max(true), None);
+        // With the saturation value as the limit, returns up to the usable
+        // range are kept and the saturated readings mean "no return".
+        let mut s = scan(vec![5.0, 15.0, 51.15, 30.0], 10.0);
+        s.max_range = 51.15;
+        let u = to_scan(&s, Pose2::identity(), 181, 20.0);
+        assert_eq!(
+            flags(&u),
+            [(false, 5.0), (false, 15.0), (true, 20.0), (true, 20.0)]
+        );
+
+        // Only saturated readings above the declaration (csail-corrected:
+        // declared 50 m, "no return" written as 81.91): nothing to overrule.
+        let sat = (0..10).map(|_| Ok(scan(vec![5.0, 81.91, 81.91, 12.0], 50.0)));
+        let survey = RangeSurvey::of_scans(sat).unwrap();
+        assert_eq!(survey.between, 0);
+        assert_eq!(survey.sensor_max(false), None);
+        // Stray readings (< 1 %) above the declaration do not overrule it either.
+        let mut few: Vec<Result<LaserScan2d>> =
+            (0..200).map(|_| Ok(scan(vec![5.0; 10], 10.0))).collect();
+        few.push(Ok(scan(vec![12.0, 30.0], 10.0)));
+        let survey = RangeSurvey::of_scans(few).unwrap();
+        assert_eq!(survey.between, 1);
+        assert!(!survey.contradicts_declaration());
     }
 }
