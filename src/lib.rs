@@ -25,6 +25,7 @@ pub mod geometry;
 pub mod gpu;
 pub mod io;
 pub mod laser_model;
+pub mod motion_learning;
 pub mod motion_model;
 pub mod pipeline;
 pub mod proposal;

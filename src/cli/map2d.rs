@@ -21,6 +21,9 @@ pub struct Map2dArgs {
     /// Where scan likelihoods are computed (gpu needs a build with `--features gpu` and a Vulkan driver; auto falls back to cpu)
     #[arg(long, value_enum, default_value_t = dpslam::backend::Backend::Cpu)]
     pub backend: dpslam::backend::Backend,
+    /// Learn the motion model from the log first (dissertation ch. 6): this many EM rounds, each a full SLAM run, before the final run with the learned model (docs/CONFIG.md)
+    #[arg(long, default_value_t = 0)]
+    pub learn_motion: usize,
 }
 
 /// Flags every mapping command shares.
@@ -66,7 +69,42 @@ pub fn build_config(run: &RunArgs, particles: Option<usize>) -> dpslam::Result<C
 pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
     let cfg = build_config(&a.run, a.particles)?;
     let log = a.log.unwrap_or_else(|| PathBuf::from(DEFAULT_LOG));
-    let s = dpslam::pipeline::map2d::run_map2d_with(&log, &a.out, &cfg, a.backend)?;
+    let s = if a.learn_motion > 0 {
+        let report = |r: &dpslam::pipeline::map2d::LearnRound| {
+            let m = &r.fit.model;
+            eprintln!(
+                "learn-motion round {}/{}: {} steps ({} left out), log-likelihood per step \
+                 {:.2} -> {:.2}; std D [{:.4} m/m, {:.4} m/rad] C [{:.4} m/m, {:.4} m/rad] \
+                 T [{:.4} rad/m, {:.4} rad/rad], floors {:.4} m, {:.4} rad ({:.1} s)",
+                r.round,
+                a.learn_motion,
+                r.fit.steps,
+                r.fit.outliers,
+                r.fit.prior_log_likelihood,
+                r.fit.log_likelihood,
+                m.std_d[0],
+                m.std_d[1],
+                m.std_c[0],
+                m.std_c[1],
+                m.std_t[0],
+                m.std_t[1],
+                m.min_std_xy,
+                m.min_std_t,
+                r.wall_time_s
+            );
+        };
+        dpslam::pipeline::map2d::run_map2d_learning(
+            &log,
+            &a.out,
+            &cfg,
+            a.backend,
+            a.learn_motion,
+            report,
+        )?
+        .0
+    } else {
+        dpslam::pipeline::map2d::run_map2d_with(&log, &a.out, &cfg, a.backend)?
+    };
     println!(
         "map2d: {} scans ({} processed), {} particles, {:.1} s wall, peak {:.0} MiB -> {}",
         s.scans,

@@ -7,6 +7,7 @@ use crate::io::log2d::{LogFormat, open_log2d};
 use crate::io::map_image::{OccupancyRaster, write_map};
 use crate::io::tum::write_tum;
 use crate::laser_model::LaserModel;
+use crate::motion_learning::{LearnOptions, MotionFit, MotionSample, fit_cdt};
 use crate::motion_model::CdtModel;
 use crate::scan::{Beam, LaserScan2d, Scan};
 use crate::{Error, Result};
@@ -195,6 +196,32 @@ impl RangeSurvey {
         Ok(survey)
     }
 
+    /// What a run of `log` with the "no return" threshold `sensor_max` (from
+    /// [`RangeSurvey::sensor_max`]) and the usable range `max_range` (m)
+    /// should warn about.
+    pub fn warnings(&self, log: &Path, sensor_max: Option<f64>, max_range: f64) -> Vec<String> {
+        let share = 100.0 * self.between as f64 / self.readings.max(1) as f64;
+        let (declared, largest) = (self.declared, self.largest);
+        let mut out = Vec::new();
+        if let Some(m) = sensor_max {
+            out.push(format!(
+                "{}: {share:.0} % of the laser readings lie between the log's declared maximum \
+                 range of {declared} m and its largest reading, {m:.2} m: taken as returns, with \
+                 {m:.2} m as \"no return\" (set laser.trust_declared_max_range = true to keep \
+                 the declaration)",
+                log.display(),
+            ));
+        } else if self.contradicts_declaration() && max_range <= declared {
+            out.push(format!(
+                "{}: {share:.0} % of the laser readings lie above the log's declared maximum \
+                 range of {declared} m (up to {largest:.1} m) and were taken as \"no return\" \
+                 (laser.trust_declared_max_range = true)",
+                log.display(),
+            ));
+        }
+        out
+    }
+
     /// Whether ≥ 1 % of the readings contradict the declared maximum.
     pub fn contradicts_declaration(&self) -> bool {
         self.readings > 0 && self.between * 100 >= self.readings
@@ -248,24 +275,41 @@ pub fn run_map2d(log: &Path, out: &Path, cfg: &Config) -> Result<Map2dSummary> {
     run_map2d_with(log, out, cfg, crate::backend::Backend::Cpu)
 }
 
-/// As [`run_map2d`], scoring scans on `backend` (see [`crate::backend::make_scorer`]).
-pub fn run_map2d_with(
-    log: &Path,
-    out: &Path,
-    cfg: &Config,
-    backend: crate::backend::Backend,
-) -> Result<Map2dSummary> {
+/// A 2-D filter run over a whole log, before anything is written.
+pub struct FilterRun2d {
+    /// The filter after the last scan.
+    pub filter: ParticleFilter<2, Pose2>,
+    /// Per input scan: its time (s, or its index without time stamps) and
+    /// odometry. Small, and needed for the skipped scans' poses; the maps
+    /// themselves do not grow with the log.
+    pub stamps: Vec<(f64, Pose2)>,
+    /// What each filter step did.
+    pub stats: Vec<StepStats>,
+    /// Detected log format.
+    pub format: LogFormat,
+    /// Usable laser range, m.
+    pub max_range: f64,
+    /// Beams used per scan.
+    pub beams_per_scan: usize,
+    /// Time span of the log, s (`None` without time stamps).
+    pub data_duration_s: Option<f64>,
+    /// What the range survey found worth a warning.
+    pub warnings: Vec<String>,
+    /// Scan-likelihood backend used.
+    pub backend: String,
+}
+
+/// Runs 2-D DP-SLAM over `log`, scoring scans on `backend` (see
+/// [`crate::backend::make_scorer`]); writes nothing.
+pub fn run_filter2d(log: &Path, cfg: &Config, backend: crate::backend::Backend) -> Result<FilterRun2d> {
     cfg.validate()?;
     let (scorer, backend_used) = crate::backend::make_scorer::<2, Pose2>(backend)?;
     let mut scorer = Some(scorer);
-    let start = Instant::now();
     let mut reader = open_log2d(log)?;
     let format = reader.format();
     let bar = super::progress_bar(reader.total_bytes(), "map2d");
     let f = &cfg.filter;
 
-    // Per input scan: its time (or index) and odometry. Small and needed for
-    // the skipped scans' poses; the maps themselves do not grow with the log.
     let mut stamps: Vec<(f64, Pose2)> = Vec::new();
     let mut filter: Option<ParticleFilter<2, Pose2>> = None;
     let mut last_processed: Option<(usize, Pose2)> = None;
@@ -319,60 +363,101 @@ pub fn run_map2d_with(
     }
     bar.finish_and_clear();
     let filter = filter.ok_or_else(|| Error::in_file(log, "no laser scans"))?;
+    let data_duration_s = match (first_time, last_time) {
+        (Some(a), Some(b)) if b > a => Some(b - a),
+        _ => None,
+    };
+    Ok(FilterRun2d {
+        filter,
+        stamps,
+        stats,
+        format,
+        max_range,
+        beams_per_scan,
+        data_duration_s,
+        warnings: survey.warnings(log, sensor_max, max_range),
+        backend: backend_used,
+    })
+}
 
-    // Trajectory: processed scans from the best particle, the others by odometry.
-    let corrected = filter.best_trajectory();
-    let mut rows = Vec::with_capacity(stamps.len());
-    let mut next = corrected.iter().peekable();
-    let mut anchor: Option<(Pose2, Pose2)> = None; // (corrected, odometry) of the last processed scan
-    for (i, (t, odo)) in stamps.iter().enumerate() {
-        let pose = match next.peek() {
-            Some(st) if st.scan as usize == i => {
-                let p = st.pose;
-                next.next();
-                anchor = Some((p, *odo));
-                p
+impl FilterRun2d {
+    /// The trajectory, one `(time, TUM pose)` row per input scan: processed
+    /// scans from the best particle, the others carried by odometry from the
+    /// last processed one.
+    pub fn trajectory(&self) -> Result<Vec<(f64, [f64; 7])>> {
+        let corrected = self.filter.best_trajectory();
+        let mut rows = Vec::with_capacity(self.stamps.len());
+        let mut next = corrected.iter().peekable();
+        // (corrected, odometry) of the last processed scan.
+        let mut anchor: Option<(Pose2, Pose2)> = None;
+        for (i, (t, odo)) in self.stamps.iter().enumerate() {
+            let pose = match next.peek() {
+                Some(st) if st.scan as usize == i => {
+                    let p = st.pose;
+                    next.next();
+                    anchor = Some((p, *odo));
+                    p
+                }
+                _ => {
+                    let (p, o) = anchor.expect("the first scan is always processed");
+                    p * (o.inverse() * odo)
+                }
+            };
+            if !Pose::<2>::is_finite(&pose) {
+                return Err(Error::Invalid(format!("non-finite pose at scan {i}")));
             }
-            _ => {
-                let (p, o) = anchor.expect("the first scan is always processed");
-                p * (o.inverse() * odo)
-            }
-        };
-        if !Pose::<2>::is_finite(&pose) {
-            return Err(Error::Invalid(format!("non-finite pose at scan {i}")));
+            rows.push((*t, Pose::<2>::to_tum(&pose)));
         }
-        rows.push((*t, Pose::<2>::to_tum(&pose)));
+        Ok(rows)
     }
+
+    /// Odometry and best-trajectory motion between consecutive processed
+    /// scans, for learning the motion model ([`crate::motion_learning`]).
+    pub fn motion_samples(&self) -> Vec<MotionSample> {
+        self.filter
+            .best_trajectory()
+            .windows(2)
+            .map(|w| {
+                let (a, b) = (&w[0], &w[1]);
+                let (oa, ob) = (self.stamps[a.scan as usize].1, self.stamps[b.scan as usize].1);
+                MotionSample {
+                    odometry: oa.inverse() * ob,
+                    estimate: a.pose.inverse() * b.pose,
+                }
+            })
+            .collect()
+    }
+}
+
+/// As [`run_map2d`], scoring scans on `backend` (see [`crate::backend::make_scorer`]).
+pub fn run_map2d_with(
+    log: &Path,
+    out: &Path,
+    cfg: &Config,
+    backend: crate::backend::Backend,
+) -> Result<Map2dSummary> {
+    let start = Instant::now();
+    let run = run_filter2d(log, cfg, backend)?;
+    let rows = run.trajectory()?;
+    let FilterRun2d {
+        filter,
+        stamps,
+        stats,
+        format,
+        max_range,
+        beams_per_scan,
+        data_duration_s: duration,
+        warnings,
+        backend: backend_used,
+    } = run;
+    let f = &cfg.filter;
 
     if std::env::var_os("DPSLAM_DEBUG").is_some() {
         eprintln!("list lengths: {:?}", filter.map().list_length_histogram(64));
     }
     let raster = raster_of(&filter, filter.best_index())?;
     let wall = start.elapsed().as_secs_f64();
-    let duration = match (first_time, last_time) {
-        (Some(a), Some(b)) if b > a => Some(b - a),
-        _ => None,
-    };
     let n_steps = stats.len().max(1) as f64;
-    let mut warnings = Vec::new();
-    let share = 100.0 * survey.between as f64 / survey.readings.max(1) as f64;
-    let (declared, largest) = (survey.declared, survey.largest);
-    if let Some(m) = sensor_max {
-        warnings.push(format!(
-            "{}: {share:.0} % of the laser readings lie between the log's declared maximum \
-             range of {declared} m and its largest reading, {m:.2} m: taken as returns, with \
-             {m:.2} m as \"no return\" (set laser.trust_declared_max_range = true to keep \
-             the declaration)",
-            log.display(),
-        ));
-    } else if survey.contradicts_declaration() && max_range <= declared {
-        warnings.push(format!(
-            "{}: {share:.0} % of the laser readings lie above the log's declared maximum range \
-             of {declared} m (up to {largest:.1} m) and were taken as \"no return\" \
-             (laser.trust_declared_max_range = true)",
-            log.display(),
-        ));
-    }
     for w in &warnings {
         eprintln!("dpslam: warning: {w}");
     }
@@ -407,6 +492,65 @@ pub fn run_map2d_with(
     super::write_atomic(&out.join("config.toml"), cfg.to_toml().as_bytes())?;
     super::write_json(&out.join("run.json"), &summary)?;
     Ok(summary)
+}
+
+/// One EM round of motion learning ([`learn_motion2d`]).
+#[derive(Debug, Clone, Serialize)]
+pub struct LearnRound {
+    /// Round number, from 1.
+    pub round: usize,
+    /// Wall-clock time of the round's SLAM run and fit, s.
+    pub wall_time_s: f64,
+    /// The model fitted in this round (used by the next).
+    pub fit: MotionFit,
+}
+
+/// Learns the C/D/T motion model of `log` (dissertation ch. 6): `rounds`
+/// rounds of a full SLAM run with the current model (E-step) and a fit of
+/// the model to the best trajectory's motions (M-step, [`fit_cdt`]),
+/// starting from `cfg.motion2d`, calling `on_round` after each. Returns
+/// `cfg` with the learned model and the rounds; writes nothing.
+pub fn learn_motion2d(
+    log: &Path,
+    cfg: &Config,
+    backend: crate::backend::Backend,
+    rounds: usize,
+    mut on_round: impl FnMut(&LearnRound),
+) -> Result<(Config, Vec<LearnRound>)> {
+    let mut cfg = cfg.clone();
+    let opts = LearnOptions::for_cell(cfg.cell_size());
+    let mut history = Vec::with_capacity(rounds);
+    for round in 1..=rounds {
+        let start = Instant::now();
+        let run = run_filter2d(log, &cfg, backend)?;
+        let fit = fit_cdt(&run.motion_samples(), &cfg.motion2d, &opts)?;
+        cfg.motion2d = fit.model.clone();
+        let r = LearnRound {
+            round,
+            wall_time_s: start.elapsed().as_secs_f64(),
+            fit,
+        };
+        on_round(&r);
+        history.push(r);
+    }
+    Ok((cfg, history))
+}
+
+/// [`learn_motion2d`], then [`run_map2d_with`] with the learned model: the
+/// run folder's `config.toml` holds the learned model (so `--config` on it
+/// reproduces the final run) and `motion_learning.json` the rounds.
+pub fn run_map2d_learning(
+    log: &Path,
+    out: &Path,
+    cfg: &Config,
+    backend: crate::backend::Backend,
+    rounds: usize,
+    on_round: impl FnMut(&LearnRound),
+) -> Result<(Map2dSummary, Vec<LearnRound>)> {
+    let (learned, history) = learn_motion2d(log, cfg, backend, rounds, on_round)?;
+    let summary = run_map2d_with(log, out, &learned, backend)?;
+    super::write_json(&out.join("motion_learning.json"), &history)?;
+    Ok((summary, history))
 }
 
 #[cfg(test)]
