@@ -70,7 +70,8 @@ pub struct Transfers {
     pub map_packed_bytes: u64,
     /// Bricks flattened again by incremental syncs (a brick the map changed).
     pub map_bricks_rewritten: u64,
-    /// Of those, bricks that outgrew their room and moved to a new region.
+    /// Of those, bricks placed in a new region: new bricks, and bricks that
+    /// outgrew their room.
     pub map_bricks_moved: u64,
     /// Other bytes uploaded: numbering, candidates, beams, parameters.
     pub other_upload_bytes: u64,
