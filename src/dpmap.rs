@@ -340,6 +340,23 @@ impl<const D: usize> DpMap<D> {
         true
     }
 
+    /// `node`'s entry in cell `k`, if it has one.
+    pub fn entry_of(&self, node: NodeId, k: CellKey<D>) -> Option<Entry> {
+        let &pos = self.index.get(node as usize)?.get(&k)?;
+        self.cell(k).get(pos as usize).copied()
+    }
+
+    /// Sets the path length (m) of `node`'s existing entry in cell `k`.
+    /// Returns false if the node has no entry there.
+    pub fn set_distance(&mut self, node: NodeId, k: CellKey<D>, distance: f32) -> bool {
+        let Some(&pos) = self.index.get(node as usize).and_then(|m| m.get(&k)) else {
+            return false;
+        };
+        self.version = next_version();
+        self.cell_mut(k)[pos as usize].distance = distance;
+        true
+    }
+
     /// Number of cells where `node` has an entry.
     pub fn node_entries(&self, node: NodeId) -> usize {
         self.index.get(node as usize).map_or(0, |m| m.len())
@@ -588,9 +605,23 @@ impl<const D: usize> ViewCache<D> {
     fn sync(&mut self, version: u64) {
         if self.version != version {
             self.version = version;
+            // Keep room for about twice what the last version used: one
+            // large step (a loop closing, a burst of disagreement) must not
+            // pin its memory for the rest of the run.
+            let (cells, spans, breaks) = (self.cells.len(), self.spans.len(), self.breaks.len());
             self.cells.clear();
             self.spans.clear();
             self.breaks.clear();
+            const KEEP_MIN: usize = 1 << 12;
+            if self.breaks.capacity() > 4 * breaks.max(KEEP_MIN) {
+                self.breaks.shrink_to(2 * breaks.max(KEEP_MIN));
+            }
+            if self.spans.capacity() > 4 * spans.max(KEEP_MIN) {
+                self.spans.shrink_to(2 * spans.max(KEEP_MIN));
+            }
+            if self.cells.capacity() > 4 * cells.max(KEEP_MIN) {
+                self.cells.shrink_to(2 * cells.max(KEEP_MIN));
+            }
         }
     }
 
