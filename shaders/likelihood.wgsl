@@ -7,8 +7,8 @@
 // SHADER_F64: every length, weight and sum in f64, exp by a polynomial, so
 // that scores equal the CPU's to ~1e-12) or `real_f32.wgsl` (f32 everywhere,
 // scores within ~2e-4 of the CPU's). The prelude defines the scalar type
-// `real`, the entry layout (`entry_node`, `entry_density`), `exp_neg` and
-// `stop_prob`. Host values travel as (hi, lo) f32 pairs, `wide` joins them:
+// `real`, the entry layout (`EntryWords`, read by `entry_node` and
+// `entry_density`), `exp_neg` and `stop_prob`. Host values travel as (hi, lo) f32 pairs, `wide` joins them:
 // exact to ~48 bits in f64 mode, the f32 value in f32 mode.
 //
 // Units: every length here is in CELLS, measured from the corner of the
@@ -23,8 +23,9 @@ struct Params {
     brick_bits: u32,
     table_mask: u32,
     dim: u32,
-    _p0: u32,
-    _p1: u32,
+    // Elements per chunk of the split entry and header arrays, as powers of two.
+    entry_shift: u32,
+    header_shift: u32,
     _p2: u32,
     // (hi, lo) pairs. 2σ², cells².
     two_var: vec2<f32>,
@@ -66,9 +67,17 @@ struct Beam {
 @group(0) @binding(2) var<storage, read> beams: array<Beam>;
 // Open-addressing brick table: xyz = brick key, w = brick index (-1: empty slot).
 @group(0) @binding(3) var<storage, read> table: array<vec4<i32>>;
-// Per brick, cells_per_brick + 1 offsets into `entries` (cell i: [h[i], h[i+1])).
-@group(0) @binding(4) var<storage, read> headers: array<u32>;
-// Binding 5, `entries` (node id, density in stops per cell length): in the prelude.
+// Per brick slot, cells_per_brick + 1 offsets into the entries (cell i:
+// [h[i], h[i+1])), split over two bindings: see `header`.
+@group(0) @binding(4) var<storage, read> headers0: array<u32>;
+@group(0) @binding(8) var<storage, read> headers1: array<u32>;
+// (node id, density in stops per cell length) in the prelude's layout,
+// split over four bindings: see `entry`. A large map exceeds one binding
+// (128 MiB on lavapipe); WGSL cannot index bindings, hence the branches.
+@group(0) @binding(5) var<storage, read> entries0: array<EntryWords>;
+@group(0) @binding(9) var<storage, read> entries1: array<EntryWords>;
+@group(0) @binding(10) var<storage, read> entries2: array<EntryWords>;
+@group(0) @binding(11) var<storage, read> entries3: array<EntryWords>;
 // Per node id: (enter, exit) of the depth-first numbering.
 @group(0) @binding(6) var<storage, read> numbering: array<vec2<u32>>;
 // Beam likelihoods, before the floor.
@@ -76,6 +85,31 @@ struct Beam {
 
 // Stands in for +inf (naga rejects infinite literals); no trace is this long.
 const BIG: real = 1.0e30;
+
+// Header word i: chunk i >> header_shift, at i & mask.
+fn header(i: u32) -> u32 {
+    let j = i & ((1u << P.header_shift) - 1u);
+    if ((i >> P.header_shift) == 0u) {
+        return headers0[j];
+    }
+    return headers1[j];
+}
+
+// Entry i: chunk i >> entry_shift, at i & mask.
+fn entry(i: u32) -> EntryWords {
+    let j = i & ((1u << P.entry_shift) - 1u);
+    let c = i >> P.entry_shift;
+    if (c == 0u) {
+        return entries0[j];
+    }
+    if (c == 1u) {
+        return entries1[j];
+    }
+    if (c == 2u) {
+        return entries2[j];
+    }
+    return entries3[j];
+}
 
 fn wide(v: vec2<f32>) -> real {
     return real(v.x) + real(v.y);
@@ -111,8 +145,8 @@ fn find_brick(b: vec3<i32>) -> i32 {
 fn resolve(bi: i32, local: u32, leaf: u32) -> real {
     let cpb = 1u << (P.brick_bits * P.dim);
     let h = u32(bi) * (cpb + 1u) + local;
-    let s = headers[h];
-    let e = headers[h + 1u];
+    let s = header(h);
+    let e = header(h + 1u);
     var found = false;
     var best = 0u;
     var at = 0u;

@@ -3,14 +3,14 @@
 alias real = f32;
 
 // (node id, density in stops per cell length as f32 bits).
-@group(0) @binding(5) var<storage, read> entries: array<vec2<u32>>;
+alias EntryWords = vec2<u32>;
 
 fn entry_node(i: u32) -> u32 {
-    return entries[i].x;
+    return entry(i).x;
 }
 
 fn entry_density(i: u32) -> real {
-    return bitcast<f32>(entries[i].y);
+    return bitcast<f32>(entry(i).y);
 }
 
 // exp(−x), x ≥ 0.

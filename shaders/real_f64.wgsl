@@ -9,14 +9,14 @@ alias real = f64;
 
 // (node id, density hi, density lo, unused): the density in stops per cell
 // length as two f32s whose sum is the f64 value to ~48 bits.
-@group(0) @binding(5) var<storage, read> entries: array<vec4<u32>>;
+alias EntryWords = vec4<u32>;
 
 fn entry_node(i: u32) -> u32 {
-    return entries[i].x;
+    return entry(i).x;
 }
 
 fn entry_density(i: u32) -> real {
-    let e = entries[i];
+    let e = entry(i);
     return f64(bitcast<f32>(e.y)) + f64(bitcast<f32>(e.z));
 }
 

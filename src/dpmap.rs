@@ -51,6 +51,9 @@ const DIRECT_SCAN_MAX: usize = 6;
 #[derive(Debug, Clone)]
 struct Brick {
     cells: Box<[CellList]>,
+    /// The map version of the last op that reached one of its cells through
+    /// `cell_mut`: lets mirrors of the map (the GPU's) copy only what changed.
+    stamp: u64,
 }
 
 /// Map versions are unique across all maps of the process, so that a cache
@@ -61,8 +64,14 @@ fn next_version() -> u64 {
     NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
 }
 
+/// A map identity no other map of the process has had (see [`DpMap::id`]).
+fn next_id() -> u64 {
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+    NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+}
+
 /// The shared observation grid.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct DpMap<const D: usize> {
     cell: f64,
     bricks: FxHashMap<CellKey<D>, Brick>,
@@ -70,6 +79,23 @@ pub struct DpMap<const D: usize> {
     index: Vec<FxHashMap<CellKey<D>, u32>>,
     entries: usize,
     version: u64,
+    id: u64,
+}
+
+/// A clone is a new map: same contents, versions and brick stamps, but its
+/// own [`DpMap::id`], so that a mirror of the original never takes the clone
+/// (which may then change independently) for the map it mirrors.
+impl<const D: usize> Clone for DpMap<D> {
+    fn clone(&self) -> Self {
+        Self {
+            cell: self.cell,
+            bricks: self.bricks.clone(),
+            index: self.index.clone(),
+            entries: self.entries,
+            version: self.version,
+            id: next_id(),
+        }
+    }
 }
 
 #[inline]
@@ -144,6 +170,7 @@ impl<const D: usize> DpMap<D> {
             index: Vec::new(),
             entries: 0,
             version: next_version(),
+            id: next_id(),
         }
     }
 
@@ -168,9 +195,34 @@ impl<const D: usize> DpMap<D> {
     }
 
     /// Changes whenever the map changes, to a value no other map of the
-    /// process has had (for caches).
+    /// process has had (for caches). Versions only increase, within a map
+    /// and across the process.
     pub fn version(&self) -> u64 {
         self.version
+    }
+
+    /// This map's identity: unique in the process, new for every
+    /// [`DpMap::new`] and every clone, kept while the map is edited or moved.
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
+    /// The bricks (keys: cell key >> brick bits per axis) whose cells an op
+    /// of a version after `version` may have changed; with `version` 0,
+    /// every brick. O(bricks). Bricks are never freed, so a brick seen once
+    /// stays; one listed here may hold the same lists as before (an op that
+    /// visited it without a net change).
+    pub fn bricks_changed_since(&self, version: u64) -> Vec<CellKey<D>> {
+        self.bricks
+            .iter()
+            .filter(|(_, b)| b.stamp > version)
+            .map(|(k, _)| *k)
+            .collect()
+    }
+
+    /// Cell side of a brick as a power of two (2-D: 4, i.e. 16 cells; 3-D: 3).
+    pub fn brick_bits() -> u32 {
+        brick_bits(D)
     }
 
     /// Approximate heap bytes used by the map and its indexes.
@@ -202,16 +254,17 @@ impl<const D: usize> DpMap<D> {
         }
     }
 
+    /// Every mutation of a list goes through here, after its op has taken a
+    /// new version, which stamps the brick.
     fn cell_mut(&mut self, k: CellKey<D>) -> &mut CellList {
         let (b, i) = split(k);
         let n = Self::brick_cells();
-        &mut self
-            .bricks
-            .entry(b)
-            .or_insert_with(|| Brick {
-                cells: vec![CellList::new(); n].into_boxed_slice(),
-            })
-            .cells[i]
+        let brick = self.bricks.entry(b).or_insert_with(|| Brick {
+            cells: vec![CellList::new(); n].into_boxed_slice(),
+            stamp: 0,
+        });
+        brick.stamp = self.version;
+        &mut brick.cells[i]
     }
 
     fn node_index(&mut self, n: NodeId) -> &mut FxHashMap<CellKey<D>, u32> {
@@ -284,6 +337,23 @@ impl<const D: usize> DpMap<D> {
         };
         self.version = next_version();
         self.cell_mut(k)[pos as usize].distance += distance;
+        true
+    }
+
+    /// `node`'s entry in cell `k`, if it has one.
+    pub fn entry_of(&self, node: NodeId, k: CellKey<D>) -> Option<Entry> {
+        let &pos = self.index.get(node as usize)?.get(&k)?;
+        self.cell(k).get(pos as usize).copied()
+    }
+
+    /// Sets the path length (m) of `node`'s existing entry in cell `k`.
+    /// Returns false if the node has no entry there.
+    pub fn set_distance(&mut self, node: NodeId, k: CellKey<D>, distance: f32) -> bool {
+        let Some(&pos) = self.index.get(node as usize).and_then(|m| m.get(&k)) else {
+            return false;
+        };
+        self.version = next_version();
+        self.cell_mut(k)[pos as usize].distance = distance;
         true
     }
 
@@ -424,19 +494,32 @@ impl<const D: usize> DpMap<D> {
 
     /// Calls `f` for every allocated cell with its key and list.
     pub fn for_each_cell(&self, mut f: impl FnMut(CellKey<D>, &[Entry])) {
-        let bits = brick_bits(D);
         for (b, brick) in &self.bricks {
-            for (i, list) in brick.cells.iter().enumerate() {
-                if list.is_empty() {
-                    continue;
-                }
-                let local = unsplit_local::<D>(i);
-                let mut k = [0i32; D];
-                for (a, kk) in k.iter_mut().enumerate() {
-                    *kk = (b[a] << bits) + local[a] as i32;
-                }
-                f(k, list);
+            Self::visit_brick(*b, brick, &mut f);
+        }
+    }
+
+    /// Calls `f` for every non-empty cell of brick `b` (a key of
+    /// [`DpMap::bricks_changed_since`]) with its key and list, in storage
+    /// order; nothing if the brick was never allocated.
+    pub fn for_each_cell_in_brick(&self, b: CellKey<D>, mut f: impl FnMut(CellKey<D>, &[Entry])) {
+        if let Some(brick) = self.bricks.get(&b) {
+            Self::visit_brick(b, brick, &mut f);
+        }
+    }
+
+    fn visit_brick(b: CellKey<D>, brick: &Brick, f: &mut impl FnMut(CellKey<D>, &[Entry])) {
+        let bits = brick_bits(D);
+        for (i, list) in brick.cells.iter().enumerate() {
+            if list.is_empty() {
+                continue;
             }
+            let local = unsplit_local::<D>(i);
+            let mut k = [0i32; D];
+            for (a, kk) in k.iter_mut().enumerate() {
+                *kk = (b[a] << bits) + local[a] as i32;
+            }
+            f(k, list);
         }
     }
 
@@ -522,9 +605,23 @@ impl<const D: usize> ViewCache<D> {
     fn sync(&mut self, version: u64) {
         if self.version != version {
             self.version = version;
+            // Keep room for about twice what the last version used: one
+            // large step (a loop closing, a burst of disagreement) must not
+            // pin its memory for the rest of the run.
+            let (cells, spans, breaks) = (self.cells.len(), self.spans.len(), self.breaks.len());
             self.cells.clear();
             self.spans.clear();
             self.breaks.clear();
+            const KEEP_MIN: usize = 1 << 12;
+            if self.breaks.capacity() > 4 * breaks.max(KEEP_MIN) {
+                self.breaks.shrink_to(2 * breaks.max(KEEP_MIN));
+            }
+            if self.spans.capacity() > 4 * spans.max(KEEP_MIN) {
+                self.spans.shrink_to(2 * spans.max(KEEP_MIN));
+            }
+            if self.cells.capacity() > 4 * cells.max(KEEP_MIN) {
+                self.cells.shrink_to(2 * cells.max(KEEP_MIN));
+            }
         }
     }
 
@@ -740,6 +837,44 @@ mod tests {
         );
     }
     use crate::ancestry::AncestryTree;
+
+    fn sorted(mut v: Vec<CellKey<2>>) -> Vec<CellKey<2>> {
+        v.sort_unstable();
+        v
+    }
+
+    #[test]
+    fn bricks_changed_since_lists_the_touched_bricks_and_clones_are_new_maps() {
+        let mut m = DpMap::<2>::new(0.1);
+        m.insert(0, [0, 0], 1.0, 1.0);
+        m.insert(1, [40, 3], 1.0, 1.0);
+        m.insert(2, [-1, 0], 1.0, 1.0);
+        let v = m.version();
+        assert!(m.bricks_changed_since(v).is_empty());
+        assert_eq!(sorted(m.bricks_changed_since(0)), [[-1, 0], [0, 0], [2, 0]]);
+        assert!(m.add_distance(1, [40, 3], 0.5));
+        assert_eq!(m.bricks_changed_since(v), [[2, 0]]);
+        // No entry there: nothing changes, nothing is stamped.
+        assert!(!m.add_distance(1, [0, 0], 0.5));
+        assert_eq!(m.bricks_changed_since(v), [[2, 0]]);
+        let v = m.version();
+        m.apply(&[Change::Merged { child: 2, into: 0 }, Change::Removed(1)]);
+        assert!(m.version() > v);
+        assert_eq!(sorted(m.bricks_changed_since(v)), [[-1, 0], [2, 0]]);
+        assert!(m.cell([40, 3]).is_empty() && m.cell([-1, 0])[0].node == 0);
+        let v = m.version();
+        m.insert_fresh(5, &[([0, 1], 1.0, 1.0), ([16, 16], 0.0, 1.0)]);
+        assert_eq!(sorted(m.bricks_changed_since(v)), [[0, 0], [1, 1]]);
+        // A clone keeps contents, versions and stamps but is another map.
+        let c = m.clone();
+        assert_ne!(c.id(), m.id());
+        assert_eq!(c.version(), m.version());
+        assert_eq!(
+            sorted(c.bricks_changed_since(v)),
+            sorted(m.bricks_changed_since(v))
+        );
+        assert_ne!(DpMap::<2>::new(0.1).id(), DpMap::<2>::new(0.1).id());
+    }
 
     #[test]
     fn each_particle_sees_its_latest_ancestor() {

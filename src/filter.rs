@@ -124,7 +124,10 @@ pub struct ParticleFilter<const D: usize, P: Pose<D>> {
     free_space_particles: usize,
     /// Computes scan likelihoods (CPU by default).
     scorer: Arc<dyn Scorer<D, P>>,
-    /// The map update's per-thread map caches (those of a CPU scorer).
+    /// The map update's per-thread map caches: the CPU scorer's own while
+    /// it scores (the update reads the map version the weigh step resolved,
+    /// so its lookups hit cells already cached, and one set of caches is
+    /// held instead of two), a set of their own behind another scorer.
     caches: Arc<CpuScorer<D>>,
 }
 
@@ -158,6 +161,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             };
             cfg.particles
         ];
+        let cpu = Arc::new(CpuScorer::<D>::new());
         Self {
             cfg,
             laser,
@@ -171,8 +175,8 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             steps: 0,
             shared_free_space: true,
             free_space_particles: 0,
-            scorer: Arc::new(CpuScorer::<D>::new()),
-            caches: Arc::new(CpuScorer::<D>::new()),
+            scorer: cpu.clone(),
+            caches: cpu,
         }
     }
 
@@ -344,32 +348,56 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         };
         // Exactly `sharers` of the indices 0..n pass, evenly spread.
         let shares = |i: usize| (i * sharers) % n < sharers;
-        let observations: Vec<Observation<D>> = map_in_preorder(
-            n,
-            |i| {
-                let parent = self.particles[samples[chosen[i]].parent].node;
-                self.numbering.enter[parent as usize]
-            },
-            |i| {
-                let s = &samples[chosen[i]];
-                let mut cache = self.caches.thread_cache();
-                let mut view = self
-                    .map
-                    .view(&self.numbering, self.particles[s.parent].node);
-                observe(
-                    &self.laser,
-                    |k| view.entry_cached(&mut cache, k),
-                    &s.pose,
-                    scan,
-                    shared,
-                    shares(i),
-                )
-            },
-        );
         let share = 1.0 / sharers as f32;
+        // Observations go in chunks of particles (in index order), each
+        // chunk traced in parallel. The new entries of every particle wait
+        // for all observations (they are made against the parents' views),
+        // but the free-space parts are folded as each chunk ends into the
+        // running path length of each (owner, cell): one value per pair
+        // instead of one per particle, and the same float additions, in
+        // the same order, as adding each particle's share in place.
+        let chunk = (8 * rayon::current_num_threads()).max(16);
+        let mut new_entries: Vec<Vec<(CellKey<D>, f32, f32)>> = Vec::with_capacity(n);
+        let mut free: FxHashMap<(NodeId, CellKey<D>), f32> = FxHashMap::default();
+        let mut free_order: Vec<(NodeId, CellKey<D>)> = Vec::new();
+        for lo in (0..n).step_by(chunk) {
+            let hi = (lo + chunk).min(n);
+            let observations: Vec<Observation<D>> = map_in_preorder(
+                hi - lo,
+                |i| {
+                    let parent = self.particles[samples[chosen[lo + i]].parent].node;
+                    self.numbering.enter[parent as usize]
+                },
+                |i| {
+                    let s = &samples[chosen[lo + i]];
+                    let mut cache = self.caches.thread_cache();
+                    let mut view = self
+                        .map
+                        .view(&self.numbering, self.particles[s.parent].node);
+                    observe(
+                        &self.laser,
+                        |k| view.entry_cached(&mut cache, k),
+                        &s.pose,
+                        scan,
+                        shared,
+                        shares(lo + i),
+                    )
+                },
+            );
+            for obs in observations {
+                for (owner, k, d) in obs.free {
+                    let v = free.entry((owner, k)).or_insert_with(|| {
+                        free_order.push((owner, k));
+                        self.map.entry_of(owner, k).map_or(f32::NAN, |e| e.distance)
+                    });
+                    *v += d * share;
+                }
+                new_entries.push(obs.new);
+            }
+        }
         let mut next = Vec::with_capacity(chosen.len());
         let mut best = (f64::NEG_INFINITY, 0);
-        for (i, (&j, obs)) in chosen.iter().zip(observations).enumerate() {
+        for (i, (&j, new)) in chosen.iter().zip(new_entries).enumerate() {
             let s = &samples[j];
             let parent = self.particles[s.parent].node;
             let node = self.tree.add_child(
@@ -379,14 +407,16 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
                     pose: s.pose,
                 },
             );
-            self.map.insert_fresh(node, &obs.new);
-            for (owner, k, d) in obs.free {
-                self.map.add_distance(owner, k, d * share);
-            }
+            self.map.insert_fresh(node, &new);
             if scores[j] > best.0 {
                 best = (scores[j], i);
             }
             next.push(Particle { pose: s.pose, node });
+        }
+        // First-seen order: the map edits are the same on every run.
+        for key in free_order {
+            let (owner, k) = key;
+            self.map.set_distance(owner, k, free[&key]);
         }
         let mut parents: Vec<usize> = chosen.iter().map(|&j| samples[j].parent).collect();
         parents.dedup();

@@ -52,10 +52,42 @@ pub struct ScoreContext<'a, const D: usize, P: Pose<D>> {
     pub scan: &'a Scan<D, P>,
 }
 
+/// A device scorer's traffic over its life (see [`Scorer::transfers`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Transfers {
+    /// Successful scoring calls.
+    pub calls: u64,
+    /// Calls that uploaded some of the map (after a map change: once per
+    /// filter step).
+    pub map_syncs: u64,
+    /// Of those, full uploads of a rebuilt layout (the first call, another
+    /// map, too much garbage in the entry array).
+    pub map_rebuilds: u64,
+    /// Map bytes uploaded over all syncs.
+    pub map_bytes: u64,
+    /// Sum over the syncs of the map's packed size on the device: what
+    /// uploading the whole map at every sync would have cost, bytes.
+    pub map_packed_bytes: u64,
+    /// Bricks flattened again by incremental syncs (a brick the map changed).
+    pub map_bricks_rewritten: u64,
+    /// Of those, bricks placed in a new region: new bricks, and bricks that
+    /// outgrew their room.
+    pub map_bricks_moved: u64,
+    /// Other bytes uploaded: numbering, candidates, beams, parameters.
+    pub other_upload_bytes: u64,
+    /// Bytes read back.
+    pub readback_bytes: u64,
+}
+
 /// Computes scan log-likelihoods for candidate poses.
 pub trait Scorer<const D: usize, P: Pose<D>>: Send + Sync {
     /// Backend name for logs ("cpu", "gpu").
     fn name(&self) -> &'static str;
+
+    /// Device traffic so far; `None` for scorers without a device.
+    fn transfers(&self) -> Option<Transfers> {
+        None
+    }
 
     /// For each candidate, the sum over the beams of `subset` of the beam
     /// log-likelihood ([`LaserModel::beam_log_likelihood`] with `trace`).

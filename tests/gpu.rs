@@ -16,10 +16,10 @@
 //! trajectories.
 #![cfg(feature = "gpu")]
 
-use dpslam::backend::bench::{Fixture, FixtureSpec, fixture2d, fixture3d};
+use dpslam::backend::bench::{Fixture, FixturePose, FixtureSpec, fixture2d, fixture3d};
 use dpslam::backend::{Backend, make_scorer};
 use dpslam::geometry::{Pose, Pose2, Pose3};
-use dpslam::gpu::{GpuPrecision, GpuScorer};
+use dpslam::gpu::{ENTRY_CHUNKS, GpuOptions, GpuPrecision, GpuScorer, HEADER_CHUNKS};
 use dpslam::laser_model::Trace;
 use dpslam::scorer::{BeamSubset, CpuScorer, Scorer};
 
@@ -35,7 +35,16 @@ fn tolerance(p: GpuPrecision) -> f64 {
 /// there is no adapter or it lacks that precision, unless
 /// `DPSLAM_REQUIRE_GPU` is set (CI sets it: there the GPU tests must run).
 fn gpu<const D: usize>(precision: GpuPrecision) -> Option<GpuScorer<D>> {
-    match GpuScorer::with_precision(precision) {
+    gpu_with(GpuOptions {
+        precision,
+        max_binding: None,
+    })
+}
+
+/// As [`gpu`], with `options`.
+fn gpu_with<const D: usize>(options: GpuOptions) -> Option<GpuScorer<D>> {
+    let precision = options.precision;
+    match GpuScorer::with_options(options) {
         Ok(g) => {
             if precision != GpuPrecision::Auto {
                 assert_eq!(g.precision(), precision);
@@ -141,7 +150,184 @@ fn gpu_matches_cpu_in_2d() {
         c.node = particles[i % particles.len()].node;
     }
     compare(&fx, &g, BeamSubset::ALL, Trace::Full);
-    assert!(g.last_call().map_uploaded);
+    let s = g.last_call();
+    // Only the changed bricks, in place.
+    assert!(s.map_uploaded && !s.map_rebuilt, "{s:?}");
+    assert!(s.map_bytes < s.map_packed_bytes, "{s:?}");
+}
+
+/// Scores `fx` with the map's bindings capped at each of `limits` (bytes,
+/// descending) until the map no longer fits; every split must score as the
+/// CPU does. Returns the most entry and header chunks seen.
+fn split_sweep<const D: usize, P: Pose<D>>(
+    fx: &Fixture<D, P>,
+    precision: GpuPrecision,
+    limits: impl Iterator<Item = u64>,
+) -> (u32, u32) {
+    let (mut entries, mut headers) = (0, 0);
+    for limit in limits {
+        let Some(g) = gpu_with::<D>(GpuOptions {
+            precision,
+            max_binding: Some(limit),
+        }) else {
+            return (0, 0);
+        };
+        let ctx = fx.context();
+        let subset = BeamSubset {
+            first: 1,
+            stride: 3,
+        };
+        if let Err(e) = g.try_score(&ctx, &fx.candidates, subset, Trace::Full) {
+            // Beyond what all chunks hold: a clear refusal, naming sizes.
+            let msg = e.to_string();
+            assert!(
+                matches!(e, dpslam::Error::Gpu(_))
+                    && msg.contains("iB (")
+                    && msg.contains("bindings")
+                    && msg.contains("--backend cpu"),
+                "{msg}"
+            );
+            eprintln!("{D}-D {precision} limit {limit} B: {msg}");
+            assert!(entries > 1, "refused before the map was split");
+            return (entries, headers);
+        }
+        let s = g.last_call();
+        let d = compare(fx, &g, subset, Trace::Full);
+        eprintln!(
+            "{D}-D {precision} limit {limit} B: {} entry and {} header chunks, map {} B, \
+             max |gpu - cpu| = {d:.2e}",
+            s.entry_chunks, s.header_chunks, s.map_packed_bytes
+        );
+        assert!(
+            s.entry_chunks as usize <= ENTRY_CHUNKS && s.header_chunks as usize <= HEADER_CHUNKS
+        );
+        entries = entries.max(s.entry_chunks);
+        headers = headers.max(s.header_chunks);
+    }
+    panic!("the smallest limit still held the map");
+}
+
+#[test]
+fn maps_split_over_several_bindings_score_as_on_the_cpu() {
+    let fx2 = fixture2d(&FixtureSpec {
+        particles: 4,
+        steps: 3,
+        candidates: 21,
+        beams: 120,
+        seed: 4,
+    });
+    let fx3 = fixture3d(&FixtureSpec {
+        particles: 3,
+        steps: 2,
+        candidates: 14,
+        beams: 300,
+        seed: 6,
+    });
+    // Chunks hold a power of two of elements, so halving the limit from
+    // one chunk on passes through 2 and 3 or 4 chunks before the map no
+    // longer fits.
+    let halving = || (8..24).rev().map(|b| 1u64 << b);
+    for p in [GpuPrecision::F64, GpuPrecision::F32] {
+        let (e2, h2) = split_sweep(&fx2, p, halving());
+        let (e3, h3) = split_sweep(&fx3, p, halving());
+        // The 2-D map is mostly entries; the 3-D one has 513 header words
+        // per brick and fills both header bindings first.
+        assert!(e2 >= 3 && e3 >= 2, "{p}: at most {e2}, {e3} entry chunks");
+        assert_eq!(
+            h3 as usize, HEADER_CHUNKS,
+            "{p}: at most {h2}, {h3} header chunks"
+        );
+    }
+}
+
+/// Filter steps on `fx` (the map changes: births, merges, removals,
+/// free-space edits) scored with `options`; after each, the GPU must score
+/// the new map as the CPU does, having uploaded only part of it, and at
+/// most one step may rebuild the map instead.
+fn incremental_steps<const D: usize, P: FixturePose<D>>(
+    fx: &mut Fixture<D, P>,
+    options: GpuOptions,
+    stride: [f64; D],
+    steps: u32,
+) {
+    let Some(g) = gpu_with::<D>(options) else {
+        return;
+    };
+    compare(fx, &g, BeamSubset::ALL, Trace::Full);
+    assert!(g.last_call().map_rebuilt);
+    let (mut rebuilt, mut sent, mut whole, mut chunks) = (0, 0, 0, 0);
+    for i in 0..steps {
+        let scan = fx.scan.clone();
+        fx.filter.step(&P::identity().moved(stride), &scan, 100 + i);
+        let particles = fx.filter.particles().to_vec();
+        for (j, c) in fx.candidates.iter_mut().enumerate() {
+            c.node = particles[j % particles.len()].node;
+        }
+        let d = compare(fx, &g, BeamSubset::ALL, Trace::Full);
+        let s = g.last_call();
+        eprintln!(
+            "{D}-D step {i}: map {} of {} B, rebuilt {}, {} entry chunks, max |gpu - cpu| = {d:.2e}",
+            s.map_bytes, s.map_packed_bytes, s.map_rebuilt, s.entry_chunks
+        );
+        assert!(s.map_uploaded, "step {i}: the changed map was not uploaded");
+        chunks = chunks.max(s.entry_chunks);
+        rebuilt += s.map_rebuilt as u64;
+        if !s.map_rebuilt {
+            sent += s.map_bytes;
+            whole += s.map_packed_bytes;
+        }
+        // The next pass of the same step uploads nothing of the map.
+        g.try_score(&fx.context(), &fx.candidates, BeamSubset::ALL, Trace::Quick)
+            .unwrap();
+        assert_eq!(g.last_call().map_bytes, 0);
+    }
+    assert!(chunks >= 2, "the entries never spanned two chunks");
+    assert!(rebuilt <= 1, "{rebuilt} of {steps} steps rebuilt the map");
+    assert!(sent < whole, "in-place syncs sent {sent} B of {whole} B");
+    let t = g.totals();
+    assert_eq!(t.map_syncs, steps as u64 + 1);
+    assert_eq!(t.map_rebuilds, rebuilt + 1);
+}
+
+#[test]
+fn incremental_map_syncs_after_filter_steps_score_as_on_the_cpu() {
+    let spec = |particles, steps, candidates, beams, seed| FixtureSpec {
+        particles,
+        steps,
+        candidates,
+        beams,
+        seed,
+    };
+    // Bindings of 2 MiB (2-D, f32) and 512 KiB (3-D, f64): the entries
+    // span several chunks, so in-place writes land in several of them.
+    let options = |precision, max_binding| GpuOptions {
+        precision,
+        max_binding: Some(max_binding),
+    };
+    incremental_steps(
+        &mut fixture2d(&spec(4, 3, 21, 120, 8)),
+        options(GpuPrecision::F32, 2 << 20),
+        [0.25, 0.02],
+        6,
+    );
+    incremental_steps(
+        &mut fixture3d(&spec(3, 2, 14, 300, 6)),
+        options(GpuPrecision::F64, 512 << 10),
+        [0.3, 0.02, 0.0],
+        3,
+    );
+}
+
+#[test]
+fn a_map_binding_limit_below_the_minimum_is_a_clear_error() {
+    let e = GpuScorer::<2>::with_options(GpuOptions {
+        precision: GpuPrecision::Auto,
+        max_binding: Some(100),
+    });
+    match e {
+        Err(e) => assert!(e.to_string().contains("100 B"), "{e}"),
+        Ok(_) => panic!("a 100 B binding limit was accepted"),
+    }
 }
 
 #[test]

@@ -345,8 +345,14 @@ pub struct PathTiming {
     pub first_call_ms: f64,
     /// Bytes sent to the device per iteration, map excluded (GPU only).
     pub upload_bytes_per_iteration: Option<u64>,
-    /// Bytes of the flattened map (GPU only).
+    /// Bytes of the first, full map upload: the flattened map with room to
+    /// grow (GPU only).
     pub map_upload_bytes: Option<u64>,
+    /// Bytes of the map without room or garbage (GPU only).
+    pub map_packed_bytes: Option<u64>,
+    /// Map bytes uploaded by the first call after one more filter step (a
+    /// map edit), when only the changed bricks are sent (GPU only).
+    pub map_bytes_after_step: Option<u64>,
     /// Bytes read back per iteration (GPU only).
     pub readback_bytes_per_iteration: Option<u64>,
     /// Shader arithmetic, "f32" or "f64" (GPU only).
@@ -426,10 +432,12 @@ fn time_path<const D: usize, P: Pose<D>>(
     (scores, first, n, t.elapsed().as_secs_f64() / n as f64)
 }
 
-fn run_bench<const D: usize, P: Pose<D>>(
-    fx: &Fixture<D, P>,
+fn run_bench<const D: usize, P: FixturePose<D>>(
+    fx: &mut Fixture<D, P>,
     spec: &LikelihoodBenchSpec,
 ) -> Result<LikelihoodBench> {
+    let map_entries = fx.filter.map().entry_count();
+    let tree_nodes = fx.filter.tree().len();
     let work = (fx.candidates.len() * fx.scan.beams.len()) as f64;
     let mut paths = Vec::new();
     let mut results: Vec<Vec<f64>> = Vec::new();
@@ -446,6 +454,8 @@ fn run_bench<const D: usize, P: Pose<D>>(
             first_call_ms: first * 1e3,
             upload_bytes_per_iteration: None,
             map_upload_bytes: None,
+            map_packed_bytes: None,
+            map_bytes_after_step: None,
             readback_bytes_per_iteration: None,
             precision: None,
         });
@@ -477,8 +487,8 @@ fn run_bench<const D: usize, P: Pose<D>>(
         dim: D,
         candidates: fx.candidates.len(),
         beams: fx.scan.beams.len(),
-        map_entries: fx.filter.map().entry_count(),
-        tree_nodes: fx.filter.tree().len(),
+        map_entries,
+        tree_nodes,
         paths,
         max_abs_diff,
         max_rel_diff,
@@ -486,21 +496,34 @@ fn run_bench<const D: usize, P: Pose<D>>(
     })
 }
 
+/// The GPU path; after timing, steps the fixture's filter once (so `fx`
+/// changes) to measure the incremental map upload that follows a map edit.
 #[cfg(feature = "gpu")]
-fn gpu_path<const D: usize, P: Pose<D>>(
-    fx: &Fixture<D, P>,
+fn gpu_path<const D: usize, P: FixturePose<D>>(
+    fx: &mut Fixture<D, P>,
     spec: &LikelihoodBenchSpec,
     work: f64,
     results: &mut Vec<Vec<f64>>,
 ) -> Result<PathTiming> {
-    let gpu = crate::gpu::GpuScorer::<D>::with_precision(spec.precision)?;
+    let gpu = crate::gpu::GpuScorer::<D>::with_options(crate::gpu::GpuOptions {
+        precision: spec.precision,
+        max_binding: crate::gpu::GpuOptions::max_binding_from_env()?,
+    })?;
     // Through `try_score` once: a device failure must fail the bench, not
     // silently time the CPU fallback.
     gpu.try_score(&fx.context(), &fx.candidates, BeamSubset::ALL, Trace::Full)?;
-    let map_bytes = gpu.last_call().upload_bytes;
+    let full = gpu.last_call();
     let (s, first, n, per) = time_path::<D, P>(&gpu, fx, spec.min_time_s, &|| gpu.invalidate());
     let last = gpu.last_call();
     results.push(s);
+    let scan = fx.scan.clone();
+    fx.filter.step(&P::identity(), &scan, u32::MAX);
+    let particles = fx.filter.particles().to_vec();
+    for (i, c) in fx.candidates.iter_mut().enumerate() {
+        c.node = particles[i % particles.len()].node;
+    }
+    gpu.try_score(&fx.context(), &fx.candidates, BeamSubset::ALL, Trace::Full)?;
+    let after = gpu.last_call();
     Ok(PathTiming {
         backend: "gpu".into(),
         device: gpu.adapter().to_string(),
@@ -509,15 +532,17 @@ fn gpu_path<const D: usize, P: Pose<D>>(
         beam_candidates_per_s: work / per,
         first_call_ms: first * 1e3,
         upload_bytes_per_iteration: Some(last.upload_bytes),
-        map_upload_bytes: Some(map_bytes.saturating_sub(last.upload_bytes)),
+        map_upload_bytes: Some(full.map_bytes),
+        map_packed_bytes: Some(full.map_packed_bytes),
+        map_bytes_after_step: Some(after.map_bytes),
         readback_bytes_per_iteration: Some(last.readback_bytes),
         precision: Some(gpu.precision().to_string()),
     })
 }
 
 #[cfg(not(feature = "gpu"))]
-fn gpu_path<const D: usize, P: Pose<D>>(
-    _fx: &Fixture<D, P>,
+fn gpu_path<const D: usize, P: FixturePose<D>>(
+    _fx: &mut Fixture<D, P>,
     _spec: &LikelihoodBenchSpec,
     _work: f64,
     _results: &mut Vec<Vec<f64>>,
@@ -528,7 +553,7 @@ fn gpu_path<const D: usize, P: Pose<D>>(
 
 /// Builds the fixture for `spec.dim` (4 filter particles, 3 steps) and times
 /// one full-trace, all-beam scoring of every candidate per iteration on the
-/// chosen backends.
+/// chosen backends. The GPU's map bindings follow `DPSLAM_GPU_MAX_BINDING`.
 pub fn bench_likelihood(spec: &LikelihoodBenchSpec) -> Result<LikelihoodBench> {
     let fs = FixtureSpec {
         particles: 4,
@@ -538,8 +563,8 @@ pub fn bench_likelihood(spec: &LikelihoodBenchSpec) -> Result<LikelihoodBench> {
         seed: spec.seed,
     };
     match spec.dim {
-        2 => run_bench(&fixture2d(&fs), spec),
-        3 => run_bench(&fixture3d(&fs), spec),
+        2 => run_bench(&mut fixture2d(&fs), spec),
+        3 => run_bench(&mut fixture3d(&fs), spec),
         d => Err(Error::Config(format!("--dim must be 2 or 3, not {d}"))),
     }
 }

@@ -1,18 +1,16 @@
 //! The DP-map in the flat, pointer-free form the likelihood shader reads.
 //!
 //! Cells are grouped into bricks (2-D: 16×16, 3-D: 8×8×8, as in the DP-map)
-//! found through an open-addressing hash table; each brick has a dense array
-//! of `cells + 1` offsets into one entry array, so a cell's observation list
-//! is `entries[h[i]..h[i + 1]]`. Entries keep their ancestry node id, and the
-//! depth-first numbering travels separately: re-numbering the tree (every
-//! step) re-uploads `2 × nodes` words, not the map.
+//! found through an open-addressing hash table; each brick has a slot with
+//! `cells + 1` offsets into one entry array, so a cell's observation list
+//! is `entries[h[i]..h[i + 1]]`. Each brick owns a region of the entry array
+//! with room to grow (`caps`), so that [`super::mirror`] can rewrite one
+//! brick in place when the map changes. Entries keep their ancestry node id,
+//! and the depth-first numbering travels separately: re-numbering the tree
+//! (every step) re-uploads `2 × nodes` words, not the map.
 
 use crate::dpmap::DpMap;
-
-/// Brick side as a power of two, per dimension.
-pub(crate) fn brick_bits(dim: usize) -> u32 {
-    if dim <= 2 { 4 } else { 3 }
-}
+use crate::raycast::CellKey;
 
 /// The brick-table hash; the shader's `brick_hash` is the same function.
 #[inline]
@@ -22,17 +20,28 @@ pub(crate) fn brick_hash(b: [i32; 3]) -> u32 {
         ^ (b[2] as u32).wrapping_mul(83_492_791)
 }
 
-/// A flattened map: the arrays bound to the shader.
+/// A flattened map: the arrays bound to the shader, and the layout of the
+/// entry array.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct FlatMap {
-    /// `[bx, by, bz, brick index]`, index −1 for an empty slot; length a power of two.
+    /// `[bx, by, bz, slot]`, slot −1 for an empty table position; length a
+    /// power of two, at most half full.
     pub table: Vec<[i32; 4]>,
-    /// Per brick, `cells_per_brick + 1` offsets into `entries`.
+    /// Per slot, `cells_per_brick + 1` offsets into `entries`; the first is
+    /// the start of the brick's region.
     pub headers: Vec<u32>,
-    /// One per observation, in cell order.
+    /// The bricks' regions; a cell's entries in storage order, a brick's
+    /// cells in row-major local order. Positions outside every brick's
+    /// lists (room to grow, abandoned regions) are never read.
     pub entries: Vec<Entry>,
+    /// Per slot: entries reserved for the brick from the start of its region.
+    pub caps: Vec<u32>,
+    /// Entries in the bricks' lists (the rest of `entries` is room or garbage).
+    pub live: usize,
     /// Brick side as a power of two.
     pub brick_bits: u32,
+    /// `2^(brick_bits · D)`.
+    pub cells_per_brick: usize,
 }
 
 /// One observation of the flat map.
@@ -44,11 +53,112 @@ pub(crate) struct Entry {
     pub density: f64,
 }
 
+impl Entry {
+    /// Bit-for-bit equality (what the device would read), unlike `==` on f64.
+    pub fn same(&self, o: &Entry) -> bool {
+        self.node == o.node && self.density.to_bits() == o.density.to_bits()
+    }
+}
+
 /// An f64 as two f32s whose (f64) sum is the value to ~48 bits; `hi` alone
 /// is the value rounded to f32. The shader joins them with `wide`.
 pub(crate) fn split(x: f64) -> [f32; 2] {
     let hi = x as f32;
     [hi, (x - hi as f64) as f32]
+}
+
+/// Appends `entries` as the shader reads them: `(node, density as f32
+/// bits)` pairs, or with `wide`, `(node, density hi, density lo, 0)`
+/// quadruples (see [`split`]).
+pub(crate) fn entry_words(entries: &[Entry], wide: bool, out: &mut Vec<u32>) {
+    out.reserve(entries.len() * if wide { 4 } else { 2 });
+    for e in entries {
+        let [hi, lo] = split(e.density);
+        out.push(e.node);
+        out.push(hi.to_bits());
+        if wide {
+            out.extend([lo.to_bits(), 0]);
+        }
+    }
+}
+
+/// Room reserved for a brick of `n` entries when it is (re)placed: bricks
+/// along the current scan grow every step, and half again as much keeps
+/// most of them in place for several steps.
+pub(crate) fn room(n: usize) -> usize {
+    n + n / 2 + 8
+}
+
+/// A brick key of the map as the table stores it (z = 0 in 2-D).
+pub(crate) fn key3<const D: usize>(b: CellKey<D>) -> [i32; 3] {
+    let mut k = [0i32; 3];
+    k[..D].copy_from_slice(&b);
+    k
+}
+
+/// Writes `key → slot` at the first free position of its probe sequence;
+/// returns the position.
+pub(crate) fn table_insert(table: &mut [[i32; 4]], key: [i32; 3], slot: u32) -> usize {
+    let m = table.len() - 1;
+    let mut s = brick_hash(key) as usize & m;
+    while table[s][3] >= 0 {
+        s = (s + 1) & m;
+    }
+    table[s] = [key[0], key[1], key[2], slot as i32];
+    s
+}
+
+/// A table of `2^k ≥ 2 · slots` positions (at least 16) holding `keys[i] → i`.
+pub(crate) fn build_table(keys: impl ExactSizeIterator<Item = [i32; 3]>) -> Vec<[i32; 4]> {
+    let size = (2 * keys.len()).next_power_of_two().max(16);
+    let mut table = vec![[0, 0, 0, -1]; size];
+    for (i, k) in keys.enumerate() {
+        table_insert(&mut table, k, i as u32);
+    }
+    table
+}
+
+/// One brick of `map`, flattened: `rel[i]..rel[i + 1]` index local cell
+/// `i`'s entries in `out` (row-major local index, as the shader computes
+/// it), `rel[0] = 0`. Densities are `hits / distance · cell` (stops per
+/// cell length), 0 where `hits ≤ 0`, as in `LaserModel::stop_probability`.
+pub(crate) fn flatten_brick<const D: usize>(
+    map: &DpMap<D>,
+    b: CellKey<D>,
+    rel: &mut Vec<u32>,
+    out: &mut Vec<Entry>,
+) {
+    let bits = DpMap::<D>::brick_bits();
+    let mask = (1i32 << bits) - 1;
+    let cpb = DpMap::<D>::brick_cells();
+    let local = |k: CellKey<D>| {
+        (0..D).fold(0usize, |l, i| {
+            l | (((k[i] & mask) as usize) << (bits as usize * i))
+        })
+    };
+    let cell = map.cell_size();
+    rel.clear();
+    rel.resize(cpb + 1, 0);
+    map.for_each_cell_in_brick(b, |k, list| rel[local(k) + 1] = list.len() as u32);
+    for i in 0..cpb {
+        rel[i + 1] += rel[i];
+    }
+    out.clear();
+    out.resize(rel[cpb] as usize, Entry::default());
+    map.for_each_cell_in_brick(b, |k, list| {
+        let at = rel[local(k)] as usize;
+        for (o, e) in out[at..at + list.len()].iter_mut().zip(list) {
+            let density = if e.hits <= 0.0 {
+                0.0
+            } else {
+                e.hits as f64 / e.distance as f64 * cell
+            };
+            *o = Entry {
+                node: e.node,
+                density,
+            };
+        }
+    });
 }
 
 impl FlatMap {
@@ -57,127 +167,73 @@ impl FlatMap {
         (self.table.len() - 1) as u32
     }
 
-    /// Flattens `map`. Densities are `hits / distance · cell` (stops per cell
-    /// length), 0 where `hits ≤ 0`, as in `LaserModel::stop_probability`.
+    /// Flattens `map`, each brick with [`room`] for its entries.
     pub fn build<const D: usize>(map: &DpMap<D>) -> Self {
-        let bits = brick_bits(D);
-        let cpb = 1usize << (bits as usize * D);
-        let mask = (1i32 << bits) - 1;
-        let cell = map.cell_size();
-        let mut brick_of: rustc_hash::FxHashMap<[i32; 3], u32> = Default::default();
-        let mut keys: Vec<[i32; 3]> = Vec::new();
-        // (slot = brick · cpb + local cell, entry), then a counting sort by slot.
-        let mut tmp: Vec<(u32, Entry)> = Vec::with_capacity(map.entry_count());
-        map.for_each_cell(|k, list| {
-            let mut bk = [0i32; 3];
-            let mut local = 0usize;
-            for i in 0..D {
-                bk[i] = k[i] >> bits;
-                local |= ((k[i] & mask) as usize) << (bits as usize * i);
+        let cpb = DpMap::<D>::brick_cells();
+        let keys = map.bricks_changed_since(0);
+        let mut f = Self {
+            table: build_table(keys.iter().map(|&b| key3(b))),
+            headers: Vec::with_capacity(keys.len() * (cpb + 1)),
+            entries: Vec::with_capacity(room(map.entry_count())),
+            caps: Vec::with_capacity(keys.len()),
+            live: 0,
+            brick_bits: DpMap::<D>::brick_bits(),
+            cells_per_brick: cpb,
+        };
+        let (mut rel, mut list) = (Vec::new(), Vec::new());
+        for b in keys {
+            flatten_brick(map, b, &mut rel, &mut list);
+            let base = f.entries.len() as u32;
+            let cap = room(list.len());
+            f.headers.extend(rel.iter().map(|r| base + r));
+            f.entries.extend_from_slice(&list);
+            f.entries.resize(base as usize + cap, Entry::default());
+            f.caps.push(cap as u32);
+            f.live += list.len();
+        }
+        f
+    }
+
+    /// The slot of brick `key`, if the table has it.
+    pub fn find_slot(&self, key: [i32; 3]) -> Option<u32> {
+        let m = self.table_mask() as usize;
+        let mut s = brick_hash(key) as usize & m;
+        loop {
+            let t = self.table[s];
+            if t[3] < 0 {
+                return None;
             }
-            let b = *brick_of.entry(bk).or_insert_with(|| {
-                keys.push(bk);
-                (keys.len() - 1) as u32
-            });
-            let slot = (b as usize * cpb + local) as u32;
-            for e in list {
-                let density = if e.hits <= 0.0 {
-                    0.0
-                } else {
-                    e.hits as f64 / e.distance as f64 * cell
-                };
-                tmp.push((
-                    slot,
-                    Entry {
-                        node: e.node,
-                        density,
-                    },
-                ));
+            if t[..3] == key {
+                return Some(t[3] as u32);
             }
-        });
-        let slots = keys.len() * cpb;
-        let mut start = vec![0u32; slots + 1];
-        for &(s, _) in &tmp {
-            start[s as usize + 1] += 1;
-        }
-        for i in 0..slots {
-            start[i + 1] += start[i];
-        }
-        let mut cursor = start.clone();
-        let mut entries = vec![Entry::default(); tmp.len()];
-        for (s, e) in tmp {
-            let c = &mut cursor[s as usize];
-            entries[*c as usize] = e;
-            *c += 1;
-        }
-        let mut headers = Vec::with_capacity(keys.len() * (cpb + 1));
-        for b in 0..keys.len() {
-            headers.extend_from_slice(&start[b * cpb..=(b + 1) * cpb]);
-        }
-        let size = (2 * keys.len()).next_power_of_two().max(16);
-        let mut table = vec![[0, 0, 0, -1]; size];
-        for (i, bk) in keys.iter().enumerate() {
-            let mut s = brick_hash(*bk) as usize & (size - 1);
-            while table[s][3] >= 0 {
-                s = (s + 1) & (size - 1);
-            }
-            table[s] = [bk[0], bk[1], bk[2], i as i32];
-        }
-        if headers.is_empty() {
-            // Zero-sized storage bindings are invalid; nothing ever reads this.
-            headers.push(0);
-        }
-        if entries.is_empty() {
-            entries.push(Entry::default());
-        }
-        Self {
-            table,
-            headers,
-            entries,
-            brick_bits: bits,
+            s = (s + 1) & m;
         }
     }
 
-    /// The list of cell `k` as the shader finds it (for tests).
-    /// The entries as the shader reads them: `(node, density as f32 bits)`
-    /// pairs, or with `wide`, `(node, density hi, density lo, 0)` quadruples
-    /// (see [`split`]).
-    pub fn entry_words(&self, wide: bool) -> Vec<u32> {
-        let mut w = Vec::with_capacity(self.entries.len() * if wide { 4 } else { 2 });
-        for e in &self.entries {
-            let [hi, lo] = split(e.density);
-            w.push(e.node);
-            w.push(hi.to_bits());
-            if wide {
-                w.extend([lo.to_bits(), 0]);
-            }
-        }
-        w
+    /// Bytes a device copy of these arrays needs with `entry_bytes` per
+    /// entry, room and garbage left out: what uploading a freshly built,
+    /// gap-free map would cost.
+    pub fn packed_bytes(&self, entry_bytes: usize) -> u64 {
+        (self.live * entry_bytes + self.headers.len() * 4 + self.table.len() * 16) as u64
     }
 
+    /// The list of cell `k` as the shader finds it.
     #[cfg(test)]
-    fn list<const D: usize>(&self, k: [i32; D]) -> &[Entry] {
+    pub fn list<const D: usize>(&self, k: [i32; D]) -> &[Entry] {
         let bits = self.brick_bits;
         let mask = (1i32 << bits) - 1;
-        let cpb = 1usize << (bits as usize * D);
         let mut bk = [0i32; 3];
         let mut local = 0usize;
         for i in 0..D {
             bk[i] = k[i] >> bits;
             local |= ((k[i] & mask) as usize) << (bits as usize * i);
         }
-        let m = self.table_mask() as usize;
-        let mut s = brick_hash(bk) as usize & m;
-        loop {
-            let t = self.table[s];
-            if t[3] < 0 {
-                return &[];
+        match self.find_slot(bk) {
+            None => &[],
+            Some(s) => {
+                let h = s as usize * (self.cells_per_brick + 1) + local;
+                &self.entries[self.headers[h] as usize..self.headers[h + 1] as usize]
             }
-            if t[..3] == bk {
-                let h = t[3] as usize * (cpb + 1) + local;
-                return &self.entries[self.headers[h] as usize..self.headers[h + 1] as usize];
-            }
-            s = (s + 1) & m;
         }
     }
 }
@@ -197,7 +253,8 @@ mod tests {
             want.push((k, node));
         }
         let f = FlatMap::build(&m);
-        assert_eq!(f.entries.len(), m.entry_count());
+        assert_eq!(f.live, m.entry_count());
+        assert!(f.entries.len() >= f.live);
         for (k, node) in want {
             let list = f.list(k);
             assert_eq!(list.len(), m.cell(k).len());
@@ -212,6 +269,7 @@ mod tests {
         assert!(f.list([100, 100, 100]).is_empty());
         let f2 = FlatMap::build(&DpMap::<2>::new(0.1));
         assert!(f2.list([0, 0]).is_empty());
+        assert!(f2.headers.is_empty() && f2.entries.is_empty());
     }
 
     #[test]
@@ -222,15 +280,16 @@ mod tests {
             let back = hi as f64 + lo as f64;
             assert!((back - x).abs() <= x.abs() * 2f64.powi(-47), "{x}: {back}");
         }
-        let f = FlatMap {
-            entries: vec![Entry {
-                node: 7,
-                density: 0.1,
-            }],
-            ..Default::default()
-        };
+        let e = [Entry {
+            node: 7,
+            density: 0.1,
+        }];
         let [hi, lo] = split(0.1);
-        assert_eq!(f.entry_words(false), [7, hi.to_bits()]);
-        assert_eq!(f.entry_words(true), [7, hi.to_bits(), lo.to_bits(), 0]);
+        let mut w = Vec::new();
+        entry_words(&e, false, &mut w);
+        assert_eq!(w, [7, hi.to_bits()]);
+        w.clear();
+        entry_words(&e, true, &mut w);
+        assert_eq!(w, [7, hi.to_bits(), lo.to_bits(), 0]);
     }
 }

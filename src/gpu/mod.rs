@@ -18,21 +18,31 @@
 //! (`flatten::split`) so both modes read the same buffers.
 //!
 //! Uploads per call: the candidates (144 B each), the beams of the subset
-//! (64 B each) and 64 B of parameters. The map is flattened and uploaded
-//! only when [`DpMap::version`] changes (once per filter step, not once per
-//! culling pass); the numbering only when it changes. Buffers only grow.
+//! (64 B each) and 64 B of parameters. The map is mirrored on the host
+//! ([`mirror`]) and only the bricks changed since the last call are
+//! flattened and copied, when [`DpMap::version`] changes (once per filter
+//! step, not once per culling pass); the numbering only when it changes.
+//! Buffers only grow.
+//!
+//! **Large maps:** the entry array is split over up to [`ENTRY_CHUNKS`]
+//! storage bindings and the cell headers over up to [`HEADER_CHUNKS`], each
+//! of a power-of-two number of elements that fits one binding, so the
+//! shader finds element `i` in chunk `i >> shift` at `i & mask`. Only a map
+//! beyond all chunks together is refused.
 
 pub(crate) mod flatten;
+pub(crate) mod mirror;
 
 use crate::ancestry::Numbering;
 pub use crate::backend::GpuPrecision;
 use crate::dpmap::DpMap;
 use crate::geometry::Pose;
 use crate::laser_model::Trace;
-use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
+use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer, Transfers};
 use crate::{Error, Result};
 use bytemuck::{Pod, Zeroable};
-use flatten::FlatMap;
+use mirror::{Delta, Mirror};
+use std::ops::Range;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -40,6 +50,56 @@ const SHADER_BODY: &str = include_str!("../../shaders/likelihood.wgsl");
 const PRELUDE_F32: &str = include_str!("../../shaders/real_f32.wgsl");
 const PRELUDE_F64: &str = include_str!("../../shaders/real_f64.wgsl");
 const WORKGROUP: u32 = 64;
+
+/// Storage bindings the entry array may be split over (`entries0..3` in the
+/// shader).
+pub const ENTRY_CHUNKS: usize = 4;
+/// Storage bindings the cell headers may be split over (`headers0..1`).
+pub const HEADER_CHUNKS: usize = 2;
+/// Storage buffers the shader binds: candidates, beams, brick table,
+/// numbering, output, and the header and entry chunks.
+const STORAGE_BINDINGS: u32 = 5 + (ENTRY_CHUNKS + HEADER_CHUNKS) as u32;
+/// Shader binding numbers of the header and entry chunks.
+const HEADER_BINDINGS: [u32; HEADER_CHUNKS] = [4, 8];
+const ENTRY_BINDINGS: [u32; ENTRY_CHUNKS] = [5, 9, 10, 11];
+/// The smallest binding limit [`GpuOptions::max_binding`] accepts, bytes.
+pub const MIN_MAX_BINDING: u64 = 256;
+
+/// How to open a [`GpuScorer`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct GpuOptions {
+    /// Shader arithmetic.
+    pub precision: GpuPrecision,
+    /// Caps the size of each storage binding holding the map (entry and
+    /// header chunks, brick table), bytes, below the adapter's own limit;
+    /// at least [`MIN_MAX_BINDING`]. For tests of maps split over several
+    /// bindings; `None`: the adapter's limit.
+    pub max_binding: Option<u64>,
+}
+
+impl GpuOptions {
+    /// The options in `DPSLAM_GPU_PRECISION` (`auto`, `f32`, `f64`; default
+    /// `auto`) and `DPSLAM_GPU_MAX_BINDING` (bytes, default: the adapter's
+    /// limit).
+    pub fn from_env() -> Result<Self> {
+        Ok(Self {
+            precision: GpuPrecision::from_env()?,
+            max_binding: Self::max_binding_from_env()?,
+        })
+    }
+
+    /// The limit in `DPSLAM_GPU_MAX_BINDING` (bytes), if set.
+    pub fn max_binding_from_env() -> Result<Option<u64>> {
+        match std::env::var("DPSLAM_GPU_MAX_BINDING") {
+            Err(_) => Ok(None),
+            Ok(v) => v.trim().parse::<u64>().map(Some).map_err(|_| {
+                Error::Gpu(format!(
+                    "DPSLAM_GPU_MAX_BINDING is {v:?}: expected a size in bytes"
+                ))
+            }),
+        }
+    }
+}
 
 /// The shader source for `precision` (`F32` or `F64`): a prelude that
 /// defines the scalar type, then the shared body.
@@ -60,7 +120,9 @@ struct Params {
     brick_bits: u32,
     table_mask: u32,
     dim: u32,
-    _pad: [u32; 3],
+    entry_shift: u32,
+    header_shift: u32,
+    _pad: u32,
     two_var: [f32; 2],
     max_error: [f32; 2],
     prior: [f32; 2],
@@ -125,12 +187,15 @@ impl GrowBuffer {
         })
     }
 
-    /// Makes room for `size` bytes (doubling), dropping the old contents.
-    fn reserve(&mut self, device: &wgpu::Device, size: u64) {
-        if size > self.buf.size() {
-            let cap = size.next_power_of_two().max(256);
-            self.buf = Self::alloc(device, self.label, self.usage, cap);
+    /// Makes room for `size` bytes (doubling); returns whether the buffer
+    /// was replaced, which drops its contents.
+    fn reserve(&mut self, device: &wgpu::Device, size: u64) -> bool {
+        if size <= self.buf.size() {
+            return false;
         }
+        let cap = size.next_power_of_two().max(256);
+        self.buf = Self::alloc(device, self.label, self.usage, cap);
+        true
     }
 
     fn upload(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, bytes: &[u8]) {
@@ -139,26 +204,109 @@ impl GrowBuffer {
     }
 }
 
-/// What the uploaded map was built from.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct MapKey {
-    addr: usize,
-    version: u64,
-    entries: usize,
-    bricks: usize,
-    cell: f64,
+/// A device array of 4-byte words split over up to `chunks.len()` storage
+/// buffers of `2^shift` elements (`elem` bytes each), so that the shader
+/// finds element `i` in chunk `i >> shift` at `i & (2^shift − 1)`. Unused
+/// chunks keep a tiny buffer, so every binding always has one.
+struct Chunked {
+    chunks: Vec<GrowBuffer>,
+    shift: u32,
+    elem: u64,
+    what: &'static str,
+    /// Chunks holding elements.
+    used: usize,
 }
 
-impl MapKey {
-    fn of<const D: usize>(map: &DpMap<D>) -> Self {
+impl Chunked {
+    /// Chunks of the largest power of two of elements within `max_binding`
+    /// bytes, and small enough that every element has a u32 index.
+    fn new(
+        device: &wgpu::Device,
+        what: &'static str,
+        chunks: usize,
+        elem: u64,
+        max_binding: u64,
+    ) -> Self {
+        let per = (max_binding / elem).max(1);
+        let usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
         Self {
-            addr: map as *const DpMap<D> as usize,
-            version: map.version(),
-            entries: map.entry_count(),
-            bricks: map.brick_count(),
-            cell: map.cell_size(),
+            chunks: (0..chunks)
+                .map(|_| GrowBuffer::new(device, what, usage))
+                .collect(),
+            shift: per
+                .ilog2()
+                .min(32 - chunks.next_power_of_two().ilog2())
+                .min(31),
+            elem,
+            what,
+            used: 0,
         }
     }
+
+    fn per_chunk(&self) -> usize {
+        1 << self.shift
+    }
+
+    /// Brings the device copy of a `len`-element host array up to date:
+    /// writes `dirty` (sorted, disjoint element ranges), or everything when
+    /// `full`. A chunk that must grow is replaced and written whole. `words`
+    /// appends the host words of an element range to its vector. Returns the
+    /// bytes written; an error, before writing anything, when all chunks
+    /// together cannot hold `len` elements.
+    fn sync(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        len: usize,
+        full: bool,
+        dirty: &[Range<usize>],
+        words: &mut dyn FnMut(Range<usize>, &mut Vec<u32>),
+    ) -> Result<u64> {
+        let per = self.per_chunk();
+        let need = len.div_ceil(per);
+        if need > self.chunks.len() {
+            let chunk = per as u64 * self.elem;
+            return Err(Error::Gpu(format!(
+                "{} of the map: {} ({len} × {} B), more than the {} bindings of {} that this \
+                 adapter allows hold ({}): use --backend cpu for maps this large",
+                self.what,
+                size(len as u64 * self.elem),
+                self.elem,
+                self.chunks.len(),
+                size(chunk),
+                size(chunk * self.chunks.len() as u64)
+            )));
+        }
+        let mut scratch = Vec::new();
+        let mut written = 0u64;
+        for (c, buf) in self.chunks.iter_mut().enumerate().take(need) {
+            let span = c * per..((c + 1) * per).min(len);
+            let grew = buf.reserve(device, span.len() as u64 * self.elem);
+            let whole = [span.clone()];
+            let ranges = if full || grew { &whole[..] } else { dirty };
+            for r in ranges {
+                let r = r.start.max(span.start)..r.end.min(span.end);
+                if r.is_empty() {
+                    continue;
+                }
+                scratch.clear();
+                words(r.clone(), &mut scratch);
+                let bytes = bytemuck::cast_slice::<u32, u8>(&scratch);
+                queue.write_buffer(&buf.buf, (r.start - span.start) as u64 * self.elem, bytes);
+                written += bytes.len() as u64;
+            }
+        }
+        self.used = need;
+        Ok(written)
+    }
+}
+
+/// What a map sync did.
+#[derive(Debug, Clone, Copy, Default)]
+struct MapSync {
+    map_bytes: u64,
+    numbering_bytes: u64,
+    rebuilt: bool,
 }
 
 /// Device state behind the scorer's lock.
@@ -172,17 +320,17 @@ struct State {
     params: wgpu::Buffer,
     cands: GrowBuffer,
     beams: GrowBuffer,
-    table: GrowBuffer,
-    headers: GrowBuffer,
-    entries: GrowBuffer,
+    table: Chunked,
+    headers: Chunked,
+    entries: Chunked,
     numbering: GrowBuffer,
     out: GrowBuffer,
     staging: GrowBuffer,
     precision: GpuPrecision,
-    map_key: Option<MapKey>,
-    map_brick_bits: u32,
-    map_table_mask: u32,
+    /// The host copy of the map the device holds.
+    mirror: Mirror,
     numbering_copy: Option<Numbering>,
+    totals: Transfers,
     /// Validation or device errors reported asynchronously by wgpu.
     errors: Arc<Mutex<Option<String>>>,
     /// Scratch space for the host-side structs.
@@ -193,12 +341,26 @@ struct State {
 /// Statistics of the last call, for benchmarks and logs.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct CallStats {
-    /// Bytes written to the device by the call (map included when re-uploaded).
+    /// Bytes written to the device by the call: map, numbering, candidates,
+    /// beams and parameters.
     pub upload_bytes: u64,
+    /// Of `upload_bytes`, the map's (table, headers, entries): 0 when the
+    /// device copy was current, the changed bricks after a map edit.
+    pub map_bytes: u64,
+    /// The map's size on the device without room to grow or garbage: what
+    /// uploading all of it would cost (bytes).
+    pub map_packed_bytes: u64,
     /// Bytes read back.
     pub readback_bytes: u64,
-    /// Whether the map was flattened and uploaded.
+    /// Whether any of the map was uploaded.
     pub map_uploaded: bool,
+    /// Whether the map's layout was rebuilt and uploaded whole (first call,
+    /// another map, too much garbage).
+    pub map_rebuilt: bool,
+    /// Storage bindings holding the map's entries (at most [`ENTRY_CHUNKS`]).
+    pub entry_chunks: u32,
+    /// Storage bindings holding the map's cell headers (at most [`HEADER_CHUNKS`]).
+    pub header_chunks: u32,
     /// Compute dispatches.
     pub dispatches: u32,
 }
@@ -225,6 +387,15 @@ fn bind(i: u32, b: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
     }
 }
 
+/// A byte count for messages: MiB from 1 MiB on, else KiB.
+fn size(bytes: u64) -> String {
+    if bytes >= 1 << 20 {
+        format!("{:.1} MiB", bytes as f64 / 1048576.0)
+    } else {
+        format!("{:.1} KiB", bytes as f64 / 1024.0)
+    }
+}
+
 fn gpu_err(what: &str, e: impl std::fmt::Display) -> Error {
     Error::Gpu(format!("{what}: {e}"))
 }
@@ -232,24 +403,35 @@ fn gpu_err(what: &str, e: impl std::fmt::Display) -> Error {
 impl<const D: usize> GpuScorer<D> {
     /// A scorer on the first Vulkan adapter; `WGPU_BACKEND` (e.g. `gl`)
     /// overrides the backends searched, `WGPU_ADAPTER_NAME` picks an adapter,
-    /// `DPSLAM_GPU_PRECISION` the precision (default `auto`).
+    /// `DPSLAM_GPU_PRECISION` the precision (default `auto`) and
+    /// `DPSLAM_GPU_MAX_BINDING` caps the map's bindings ([`GpuOptions`]).
     pub fn new() -> Result<Self> {
-        Self::with_precision(GpuPrecision::from_env()?)
+        Self::with_options(GpuOptions::from_env()?)
     }
 
     /// A scorer on the first Vulkan adapter (as [`GpuScorer::new`]) with the
     /// given precision.
     pub fn with_precision(precision: GpuPrecision) -> Result<Self> {
-        Self::open(wgpu::Backends::VULKAN.with_env(), precision)
+        Self::with_options(GpuOptions {
+            precision,
+            max_binding: None,
+        })
+    }
+
+    /// A scorer on the first Vulkan adapter (as [`GpuScorer::new`]) with
+    /// the given options.
+    pub fn with_options(options: GpuOptions) -> Result<Self> {
+        Self::open(wgpu::Backends::VULKAN.with_env(), options)
     }
 
     /// A scorer on the first adapter of `backends` (this build compiles in
     /// Vulkan only, so any other choice finds no adapter).
     pub fn with_backends(backends: wgpu::Backends) -> Result<Self> {
-        Self::open(backends, GpuPrecision::Auto)
+        Self::open(backends, GpuOptions::default())
     }
 
-    fn open(backends: wgpu::Backends, precision: GpuPrecision) -> Result<Self> {
+    fn open(backends: wgpu::Backends, options: GpuOptions) -> Result<Self> {
+        let precision = options.precision;
         if !(D == 2 || D == 3) {
             return Err(Error::Gpu(format!(
                 "the GPU scorer supports 2-D and 3-D maps, not {D}-D"
@@ -270,6 +452,26 @@ impl<const D: usize> GpuScorer<D> {
         })?;
         let info = adapter.get_info();
         let limits = adapter.limits();
+        if limits.max_storage_buffers_per_shader_stage < STORAGE_BINDINGS {
+            return Err(Error::Gpu(format!(
+                "the adapter {} binds at most {} storage buffers per shader stage; the \
+                 likelihood shader needs {STORAGE_BINDINGS}: run with --backend cpu",
+                info.name, limits.max_storage_buffers_per_shader_stage
+            )));
+        }
+        let max_binding = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        let map_binding = match options.max_binding {
+            Some(b) if b < MIN_MAX_BINDING => {
+                return Err(Error::Gpu(format!(
+                    "a map binding limit of {b} B is below the smallest allowed, \
+                     {MIN_MAX_BINDING} B"
+                )));
+            }
+            Some(b) => b.min(max_binding),
+            None => max_binding,
+        };
         let has_f64 = adapter.features().contains(wgpu::Features::SHADER_F64);
         let precision = match precision {
             GpuPrecision::Auto if has_f64 => GpuPrecision::F64,
@@ -325,12 +527,23 @@ impl<const D: usize> GpuScorer<D> {
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
+        let entry_bytes = if precision == GpuPrecision::F64 {
+            16
+        } else {
+            8
+        };
         let state = State {
             cands: GrowBuffer::new(&device, "candidates", storage),
             beams: GrowBuffer::new(&device, "beams", storage),
-            table: GrowBuffer::new(&device, "brick table", storage),
-            headers: GrowBuffer::new(&device, "cell headers", storage),
-            entries: GrowBuffer::new(&device, "entries", storage),
+            table: Chunked::new(&device, "the brick table", 1, 16, map_binding),
+            headers: Chunked::new(&device, "the cell headers", HEADER_CHUNKS, 4, map_binding),
+            entries: Chunked::new(
+                &device,
+                "the entries",
+                ENTRY_CHUNKS,
+                entry_bytes,
+                map_binding,
+            ),
             numbering: GrowBuffer::new(&device, "numbering", storage),
             out: GrowBuffer::new(
                 &device,
@@ -343,19 +556,16 @@ impl<const D: usize> GpuScorer<D> {
                 wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             ),
             params,
-            max_binding: limits
-                .max_storage_buffer_binding_size
-                .min(limits.max_buffer_size),
+            max_binding,
             max_groups: limits.max_compute_workgroups_per_dimension,
             device,
             queue,
             pipeline,
             layout,
             precision,
-            map_key: None,
-            map_brick_bits: 0,
-            map_table_mask: 0,
+            mirror: Mirror::default(),
             numbering_copy: None,
+            totals: Transfers::default(),
             errors,
             scratch_cands: Vec::new(),
             scratch_beams: Vec::new(),
@@ -387,10 +597,25 @@ impl<const D: usize> GpuScorer<D> {
         *self.last.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Forgets the uploaded map, so that the next call uploads it again (for
-    /// callers that rebuild a map at the same address with the same version).
+    /// Device traffic of all successful calls so far.
+    pub fn totals(&self) -> Transfers {
+        let st = self.state.lock().unwrap_or_else(|p| p.into_inner());
+        let m = st.mirror.stats();
+        Transfers {
+            map_bricks_rewritten: m.bricks_rewritten,
+            map_bricks_moved: m.bricks_moved,
+            ..st.totals
+        }
+    }
+
+    /// Forgets the uploaded map, so that the next call rebuilds and uploads
+    /// all of it (after a device error, or to time a first call).
     pub fn invalidate(&self) {
-        self.state.lock().unwrap_or_else(|p| p.into_inner()).map_key = None;
+        self.state
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .mirror
+            .reset();
     }
 
     /// As [`Scorer::score`], but a device failure is an error instead of a
@@ -420,44 +645,31 @@ impl State {
     fn fits(&self, what: &str, bytes: usize) -> Result<()> {
         if bytes as u64 > self.max_binding {
             return Err(Error::Gpu(format!(
-                "the {what} need {:.0} MiB, more than this adapter binds at once ({:.0} MiB): \
+                "the {what} need {}, more than this adapter binds at once ({}): \
                  use --backend cpu for maps this large",
-                bytes as f64 / 1048576.0,
-                self.max_binding as f64 / 1048576.0
+                size(bytes as u64),
+                size(self.max_binding)
             )));
         }
         Ok(())
     }
 
-    /// Uploads the map and numbering where they changed; returns the bytes written.
+    /// Uploads what changed of the map and the numbering.
     fn sync_map<const D: usize>(
         &mut self,
         map: &DpMap<D>,
         numbering: &Numbering,
-    ) -> Result<(u64, bool)> {
-        let mut bytes = 0u64;
-        let key = MapKey::of(map);
-        let mut uploaded = false;
-        if self.map_key != Some(key) {
-            let flat = FlatMap::build(map);
-            let words = flat.entry_words(self.precision == GpuPrecision::F64);
-            let (t, h, e) = (
-                bytemuck::cast_slice::<_, u8>(&flat.table),
-                bytemuck::cast_slice::<_, u8>(&flat.headers),
-                bytemuck::cast_slice::<_, u8>(&words),
-            );
-            self.fits("map's cell headers", h.len())?;
-            self.fits("map's entries", e.len())?;
-            self.fits("map's brick table", t.len())?;
-            self.table.upload(&self.device, &self.queue, t);
-            self.headers.upload(&self.device, &self.queue, h);
-            self.entries.upload(&self.device, &self.queue, e);
-            bytes += (t.len() + h.len() + e.len()) as u64;
-            self.map_brick_bits = flat.brick_bits;
-            self.map_table_mask = flat.table_mask();
-            self.map_key = Some(key);
-            uploaded = true;
-        }
+    ) -> Result<MapSync> {
+        let delta = self.mirror.sync(map);
+        let map_bytes = match self.upload_map(&delta) {
+            Ok(b) => b,
+            Err(e) => {
+                // The device copy is not what the mirror says: start afresh.
+                self.mirror.reset();
+                return Err(e);
+            }
+        };
+        let mut numbering_bytes = 0u64;
         let stale = self
             .numbering_copy
             .as_ref()
@@ -473,10 +685,47 @@ impl State {
             let b = bytemuck::cast_slice::<_, u8>(&flat);
             self.fits("ancestry numbering", b.len())?;
             self.numbering.upload(&self.device, &self.queue, b);
-            bytes += b.len() as u64;
+            numbering_bytes = b.len() as u64;
             self.numbering_copy = Some(numbering.clone());
         }
-        Ok((bytes, uploaded))
+        Ok(MapSync {
+            map_bytes,
+            numbering_bytes,
+            rebuilt: delta.full,
+        })
+    }
+
+    /// Copies the mirror's changes (`delta`) to the device; returns the bytes written.
+    fn upload_map(&mut self, delta: &Delta) -> Result<u64> {
+        if delta.is_empty() {
+            return Ok(0);
+        }
+        let flat = self.mirror.flat();
+        let wide = self.precision == GpuPrecision::F64;
+        let (device, queue) = (&self.device, &self.queue);
+        let full = delta.full;
+        Ok(self.table.sync(
+            device,
+            queue,
+            flat.table.len(),
+            full,
+            &delta.table,
+            &mut |r, out| out.extend_from_slice(bytemuck::cast_slice(&flat.table[r])),
+        )? + self.headers.sync(
+            device,
+            queue,
+            flat.headers.len(),
+            full,
+            &delta.headers,
+            &mut |r, out| out.extend_from_slice(&flat.headers[r]),
+        )? + self.entries.sync(
+            device,
+            queue,
+            flat.entries.len(),
+            full,
+            &delta.entries,
+            &mut |r, out| flatten::entry_words(&flat.entries[r], wide, out),
+        )?)
     }
 
     fn score<const D: usize, P: Pose<D>>(
@@ -499,7 +748,7 @@ impl State {
         if candidates.is_empty() || beams.is_empty() {
             return Ok((vec![0.0; candidates.len()], CallStats::default()));
         }
-        let (map_bytes, map_uploaded) = self.sync_map(ctx.map, ctx.numbering)?;
+        let sync = self.sync_map(ctx.map, ctx.numbering)?;
 
         // Trace spans exactly as `beam_log_likelihood` chooses them, in f64.
         let mut gb = std::mem::take(&mut self.scratch_beams);
@@ -576,13 +825,16 @@ impl State {
                 "{n_cand} candidates × {n_beams} beams is too much for one call: split the candidates"
             )));
         }
+        let flat = self.mirror.flat();
         let params = Params {
             n_cand,
             n_beams,
-            brick_bits: self.map_brick_bits,
-            table_mask: self.map_table_mask,
+            brick_bits: flat.brick_bits,
+            table_mask: flat.table_mask(),
             dim: D as u32,
-            _pad: [0; 3],
+            entry_shift: self.entries.shift,
+            header_shift: self.headers.shift,
+            _pad: 0,
             two_var: flatten::split(2.0 * laser.variance / (cell * cell)),
             max_error: flatten::split(laser.max_error / cell),
             prior: flatten::split(laser.prior_density * cell),
@@ -592,7 +844,9 @@ impl State {
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
         let cb = bytemuck::cast_slice::<_, u8>(&gc);
         let bb = bytemuck::cast_slice::<_, u8>(&gb);
-        let upload = map_bytes + (cb.len() + bb.len() + std::mem::size_of::<Params>()) as u64;
+        let upload = sync.map_bytes
+            + sync.numbering_bytes
+            + (cb.len() + bb.len() + std::mem::size_of::<Params>()) as u64;
         self.cands.upload(&self.device, &self.queue, cb);
         self.beams.upload(&self.device, &self.queue, bb);
         self.scratch_cands = gc;
@@ -600,19 +854,24 @@ impl State {
         self.out.reserve(&self.device, out_bytes);
         self.staging.reserve(&self.device, out_bytes);
 
+        let mut entries = vec![
+            bind(0, &self.params),
+            bind(1, &self.cands.buf),
+            bind(2, &self.beams.buf),
+            bind(3, &self.table.chunks[0].buf),
+            bind(6, &self.numbering.buf),
+            bind(7, &self.out.buf),
+        ];
+        for (c, at) in [
+            (&self.headers, &HEADER_BINDINGS[..]),
+            (&self.entries, &ENTRY_BINDINGS[..]),
+        ] {
+            entries.extend(at.iter().zip(&c.chunks).map(|(&i, b)| bind(i, &b.buf)));
+        }
         let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("likelihood"),
             layout: &self.layout,
-            entries: &[
-                bind(0, &self.params),
-                bind(1, &self.cands.buf),
-                bind(2, &self.beams.buf),
-                bind(3, &self.table.buf),
-                bind(4, &self.headers.buf),
-                bind(5, &self.entries.buf),
-                bind(6, &self.numbering.buf),
-                bind(7, &self.out.buf),
-            ],
+            entries: &entries,
         });
         let groups = total.div_ceil(WORKGROUP as u64) as u32;
         let gx = groups.min(self.max_groups.max(1));
@@ -663,21 +922,38 @@ impl State {
         };
         self.staging.buf.unmap();
         self.check_errors()?;
-        Ok((
-            sums,
-            CallStats {
-                upload_bytes: upload,
-                readback_bytes: out_bytes,
-                map_uploaded,
-                dispatches: 1,
-            },
-        ))
+        let stats = CallStats {
+            upload_bytes: upload,
+            map_bytes: sync.map_bytes,
+            map_packed_bytes: self.mirror.flat().packed_bytes(self.entries.elem as usize),
+            readback_bytes: out_bytes,
+            map_uploaded: sync.map_bytes > 0,
+            map_rebuilt: sync.rebuilt,
+            entry_chunks: self.entries.used as u32,
+            header_chunks: self.headers.used as u32,
+            dispatches: 1,
+        };
+        let t = &mut self.totals;
+        t.calls += 1;
+        if stats.map_uploaded {
+            t.map_syncs += 1;
+            t.map_rebuilds += stats.map_rebuilt as u64;
+            t.map_bytes += stats.map_bytes;
+            t.map_packed_bytes += stats.map_packed_bytes;
+        }
+        t.other_upload_bytes += stats.upload_bytes - stats.map_bytes;
+        t.readback_bytes += stats.readback_bytes;
+        Ok((sums, stats))
     }
 }
 
 impl<const D: usize, P: Pose<D>> Scorer<D, P> for GpuScorer<D> {
     fn name(&self) -> &'static str {
         "gpu"
+    }
+
+    fn transfers(&self) -> Option<Transfers> {
+        Some(self.totals())
     }
 
     fn score(

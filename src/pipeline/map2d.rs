@@ -106,6 +106,10 @@ pub struct Map2dSummary {
     pub mean_after_full: f64,
     /// Scan-likelihood backend used: "cpu", or "gpu", its precision and adapter.
     pub backend: String,
+    /// The GPU backend's traffic (map bytes uploaded against re-uploading
+    /// the whole map at every step); absent on the CPU.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gpu_transfers: Option<crate::scorer::Transfers>,
     /// Problems with the input worth a look (also printed on stderr).
     pub warnings: Vec<String>,
     /// Seed.
@@ -481,6 +485,7 @@ pub fn run_map2d_with(
         mean_after_quick: stats.iter().map(|s| s.after_quick as f64).sum::<f64>() / n_steps,
         mean_after_full: stats.iter().map(|s| s.after_full as f64).sum::<f64>() / n_steps,
         backend: backend_used,
+        gpu_transfers: filter.scorer().transfers(),
         warnings,
         seed: cfg.seed,
         threads: rayon::current_num_threads(),

@@ -142,6 +142,10 @@ pub struct Map3dSummary {
     pub mean_after_full: f64,
     /// Scan-likelihood backend used: "cpu", or "gpu", its precision and adapter.
     pub backend: String,
+    /// The GPU backend's traffic (map bytes uploaded against re-uploading
+    /// the whole map at every step); absent on the CPU.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gpu_transfers: Option<crate::scorer::Transfers>,
     /// Seed.
     pub seed: u64,
     /// Worker threads.
@@ -510,6 +514,7 @@ pub fn run_map3d_with(
         mean_after_quick: stats.iter().map(|s| s.after_quick as f64).sum::<f64>() / steps,
         mean_after_full: stats.iter().map(|s| s.after_full as f64).sum::<f64>() / steps,
         backend: backend_used,
+        gpu_transfers: filter.scorer().transfers(),
         seed: cfg.seed,
         threads: rayon::current_num_threads(),
     };
