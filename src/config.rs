@@ -26,6 +26,37 @@ pub struct Config {
     pub motion2d: Motion2dConfig,
     /// 3-D mode (voxel map, sweeps, 6-DoF motion and proposal).
     pub map3d: Map3dConfig,
+    /// Learning the 2-D motion model from the log (`map2d --learn-motion`).
+    pub motion_learning: MotionLearningConfig,
+}
+
+/// How `map2d --learn-motion N` fits the C/D/T model to the SLAM trajectory
+/// (dissertation ch. 6; see `motion_learning` for the method).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MotionLearningConfig {
+    /// Lower bound of the learned C/D floor, in grid cells: a proposal much
+    /// narrower than a cell cannot be told apart by the map.
+    pub min_std_xy_cells: f64,
+    /// Lower bound of the learned T floor, rad (0.005 rad: 2.5 cm of arc at 5 m).
+    pub min_std_t: f64,
+    /// Steps whose residual is beyond this many stds of a first fit (in any
+    /// component) are left out: a loss of track is not motion noise.
+    pub outlier_sigmas: f64,
+    /// Factor on every learned std (slopes and floors); 1 is the
+    /// maximum-likelihood fit.
+    pub inflation: f64,
+}
+
+impl Default for MotionLearningConfig {
+    fn default() -> Self {
+        Self {
+            min_std_xy_cells: 0.5,
+            min_std_t: 0.005,
+            outlier_sigmas: 4.0,
+            inflation: 1.0,
+        }
+    }
 }
 
 /// 3-D mode settings. The 2-D sections `filter` and `laser` apply to 3-D too
@@ -248,6 +279,7 @@ impl Default for Config {
             laser: LaserConfig::default(),
             motion2d: Motion2dConfig::default(),
             map3d: Map3dConfig::default(),
+            motion_learning: MotionLearningConfig::default(),
         }
     }
 }
@@ -396,6 +428,17 @@ impl Config {
         if l.prior_stop_every.is_nan() || l.prior_stop_every <= 0.0 {
             return bad("laser.prior_stop_every must be positive");
         }
+        let m = &self.motion_learning;
+        check_values(
+            "motion_learning",
+            &[
+                ("min_std_xy_cells", m.min_std_xy_cells),
+                ("min_std_t", m.min_std_t),
+                ("outlier_sigmas", m.outlier_sigmas),
+                ("inflation", m.inflation),
+            ],
+            false,
+        )?;
         Ok(())
     }
 

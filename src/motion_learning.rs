@@ -54,23 +54,27 @@ pub struct LearnOptions {
     pub outlier_sigmas: f64,
     /// Reweighting rounds of the variance fit.
     pub rounds: usize,
+    /// Factor on every learned std (slopes and floors) of the model the
+    /// filter samples from.
+    pub inflation: f64,
 }
 
 impl LearnOptions {
-    /// Defaults for a grid of `cell` metres: floors of at least half a cell
-    /// (m) and 0.005 rad (0.3°: 2.5 cm of arc at 5 m), outliers beyond 4 σ,
-    /// 5 rounds.
-    pub fn for_cell(cell: f64) -> Self {
+    /// The options of `cfg` (`[motion_learning]`) for its grid, with 5
+    /// reweighting rounds.
+    pub fn from_config(cfg: &crate::config::Config) -> Self {
+        let m = &cfg.motion_learning;
         Self {
-            min_std_xy: 0.5 * cell,
-            min_std_t: 0.005,
-            outlier_sigmas: 4.0,
+            min_std_xy: m.min_std_xy_cells * cfg.cell_size(),
+            min_std_t: m.min_std_t,
+            outlier_sigmas: m.outlier_sigmas,
             rounds: 5,
+            inflation: m.inflation,
         }
     }
 }
 
-/// Least fewer steps than this cannot pin down 2 mean and 3 variance terms
+/// Fewer steps than this cannot pin down 2 mean and 3 variance terms
 /// per component with any confidence.
 pub const MIN_STEPS: usize = 20;
 
@@ -170,12 +174,13 @@ fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; 
         }
         a.swap(col, piv);
         b.swap(col, piv);
+        let (pivot, pb) = (a[col], b[col]);
         for row in col + 1..N {
-            let f = a[row][col] / a[col][col];
-            for k in col..N {
-                a[row][k] -= f * a[col][k];
+            let f = a[row][col] / pivot[col];
+            for (v, p) in a[row].iter_mut().zip(pivot).skip(col) {
+                *v -= f * p;
             }
-            b[row] -= f * b[col];
+            b[row] -= f * pb;
         }
     }
     let mut x = [0.0; N];
@@ -189,7 +194,10 @@ fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; 
 /// Weighted least squares of `y` on the regressors `x` restricted to the
 /// columns in `active`, the others fixed at 0: the coefficients and the
 /// weighted squared error.
-fn wls<const N: usize>(rows: &[([f64; N], f64, f64)], active: [bool; N]) -> Option<([f64; N], f64)> {
+fn wls<const N: usize>(
+    rows: &[([f64; N], f64, f64)],
+    active: [bool; N],
+) -> Option<([f64; N], f64)> {
     let mut a = [[0.0; N]; N];
     let mut b = [0.0; N];
     for (x, y, w) in rows {
@@ -332,7 +340,8 @@ pub fn fit_cdt(
         first
     };
     let [fd, fc, ft] = fits;
-    let std_of = |f: &ComponentFit| [f.variance[0].sqrt(), f.variance[1].sqrt()];
+    let k = opts.inflation;
+    let std_of = |f: &ComponentFit| [k * f.variance[0].sqrt(), k * f.variance[1].sqrt()];
     let model = Motion2dConfig {
         mean_d: fd.mean,
         mean_c: fc.mean,
@@ -340,12 +349,8 @@ pub fn fit_cdt(
         std_d: std_of(&fd),
         std_c: std_of(&fc),
         std_t: std_of(&ft),
-        min_std_xy: fd
-            .variance[2]
-            .sqrt()
-            .max(fc.variance[2].sqrt())
-            .max(opts.min_std_xy),
-        min_std_t: ft.variance[2].sqrt().max(opts.min_std_t),
+        min_std_xy: (k * fd.variance[2].sqrt().max(fc.variance[2].sqrt())).max(opts.min_std_xy),
+        min_std_t: (k * ft.variance[2].sqrt()).max(opts.min_std_t),
         sensor_offset: prior.sensor_offset,
     };
     let used: Vec<MotionSample> = samples
@@ -412,7 +417,12 @@ mod tests {
             })
             .collect();
         let prior = Motion2dConfig::default();
-        let fit = fit_cdt(&samples, &prior, &LearnOptions::for_cell(1.0 / 35.0)).unwrap();
+        let fit = fit_cdt(
+            &samples,
+            &prior,
+            &LearnOptions::from_config(&crate::config::Config::default()),
+        )
+        .unwrap();
         let m = &fit.model;
         let close = |a: f64, b: f64, tol: f64, what: &str| {
             assert!((a - b).abs() <= tol, "{what}: learned {a}, true {b}");
@@ -425,7 +435,10 @@ mod tests {
         close(m.std_d[0], 0.04, 0.012, "std_d a");
         close(m.std_t[1], 0.05, 0.015, "std_t b");
         close(m.std_c[0], 0.03, 0.01, "std_c a");
-        assert!(fit.log_likelihood > fit.prior_log_likelihood + 1.0, "{fit:?}");
+        assert!(
+            fit.log_likelihood > fit.prior_log_likelihood + 1.0,
+            "{fit:?}"
+        );
         // Each learned σ is close to the true one where it matters: the
         // learned model explains the data about as well as the truth does.
         let truth_ll = mean_log_likelihood(&truth, &samples);
@@ -448,11 +461,17 @@ mod tests {
             .collect();
         // One step where the estimate jumped 2 m.
         samples[100].estimate = crate::geometry::pose2(2.0, 1.0, 0.5) * samples[100].estimate;
-        let opts = LearnOptions::for_cell(0.05);
+        let mut cfg = crate::config::Config::default();
+        cfg.map.cells_per_metre = 20.0;
+        let opts = LearnOptions::from_config(&cfg);
         let fit = fit_cdt(&samples, &Motion2dConfig::default(), &opts).unwrap();
         assert_eq!(fit.outliers, 1);
         // Noise-free motion: everything at the floors' lower bounds.
-        assert!((fit.model.min_std_xy - 0.025).abs() < 1e-12, "{:?}", fit.model);
+        assert!(
+            (fit.model.min_std_xy - 0.025).abs() < 1e-12,
+            "{:?}",
+            fit.model
+        );
         assert!((fit.model.min_std_t - 0.005).abs() < 1e-12);
         assert!(fit.model.std_d[0] < 1e-3 && fit.model.std_t[1] < 1e-3);
         assert!((fit.model.mean_d[0] - 1.0).abs() < 1e-6);
@@ -464,7 +483,11 @@ mod tests {
             odometry: Pose2::identity(),
             estimate: Pose2::identity(),
         };
-        let e = fit_cdt(&[s; 5], &Motion2dConfig::default(), &LearnOptions::for_cell(0.03));
+        let e = fit_cdt(
+            &[s; 5],
+            &Motion2dConfig::default(),
+            &LearnOptions::from_config(&crate::config::Config::default()),
+        );
         assert!(e.unwrap_err().to_string().contains("at least 20"));
     }
 
@@ -482,7 +505,10 @@ mod tests {
         let c = nnls3(&rows);
         assert!(c.iter().all(|&v| v >= 0.0), "{c:?}");
         assert!(c[1] == 0.0);
-        assert_eq!(solve([[2.0, 1.0], [1.0, 3.0]], [3.0, 5.0]).map(|x| x.map(|v| (v * 1e9).round() / 1e9)), Some([0.8, 1.4]));
+        assert_eq!(
+            solve([[2.0, 1.0], [1.0, 3.0]], [3.0, 5.0]).map(|x| x.map(|v| (v * 1e9).round() / 1e9)),
+            Some([0.8, 1.4])
+        );
         assert!(solve([[1.0, 2.0], [2.0, 4.0]], [1.0, 2.0]).is_none());
     }
 }

@@ -135,3 +135,52 @@ fn bad_input_fails_with_file_and_line_and_writes_nothing() {
     assert!(run_map2d(&empty, &out, &small_config()).is_err());
     assert!(!out.exists());
 }
+
+#[test]
+fn motion_learning_recovers_the_simulated_odometry_bias_and_records_the_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = prefix(SIM_LOG, 200, dir.path(), "sim.clf");
+    let out = dir.path().join("run");
+    let cfg = small_config();
+    let mut seen = 0;
+    let (s, rounds) = dpslam::pipeline::map2d::run_map2d_learning(
+        &log,
+        &out,
+        &cfg,
+        dpslam::backend::Backend::Cpu,
+        1,
+        |_| seen += 1,
+    )
+    .unwrap();
+    assert_eq!((seen, rounds.len()), (1, 1));
+    let fit = &rounds[0].fit;
+    assert!(fit.steps + fit.outliers + 1 == s.scans_processed, "{fit:?}");
+    assert!(fit.log_likelihood > fit.prior_log_likelihood, "{fit:?}");
+    let m = &fit.model;
+    // The simulator's odometry turns 0.5°/m too far left (data/sim2d): the
+    // learned turn mean undoes it, −0.0087 rad per metre.
+    assert!(
+        (-0.015..-0.004).contains(&m.mean_t[0]),
+        "turn per metre {}",
+        m.mean_t[0]
+    );
+    // Its odometry is far better than the release's robot: every learned
+    // turn std is below the release's, the floor by an order of magnitude.
+    let release = Config::default().motion2d;
+    assert!(
+        m.std_t[1] < release.std_t[1] && m.min_std_t < 0.2 * release.min_std_t,
+        "{m:?}"
+    );
+    // The run folder reproduces the final run: its config holds the model.
+    let written = Config::from_toml_file(&out.join("config.toml")).unwrap();
+    assert_eq!(&written.motion2d, m);
+    let json = std::fs::read_to_string(out.join("motion_learning.json")).unwrap();
+    assert!(
+        json.contains("\"round\": 1") && json.contains("mean_t"),
+        "{json}"
+    );
+    let traj = read_tum(&out.join("trajectory.tum")).unwrap();
+    let truth = read_tum(Path::new(SIM_TRUTH)).unwrap();
+    let ate = evaluate_ate(&truth, &traj, &AteOptions::default()).unwrap();
+    assert!(ate.rmse_m < 0.10, "ATE {} m", ate.rmse_m);
+}

@@ -305,7 +305,11 @@ pub struct FilterRun2d {
 
 /// Runs 2-D DP-SLAM over `log`, scoring scans on `backend` (see
 /// [`crate::backend::make_scorer`]); writes nothing.
-pub fn run_filter2d(log: &Path, cfg: &Config, backend: crate::backend::Backend) -> Result<FilterRun2d> {
+pub fn run_filter2d(
+    log: &Path,
+    cfg: &Config,
+    backend: crate::backend::Backend,
+) -> Result<FilterRun2d> {
     cfg.validate()?;
     let (scorer, backend_used) = crate::backend::make_scorer::<2, Pose2>(backend)?;
     let mut scorer = Some(scorer);
@@ -423,7 +427,10 @@ impl FilterRun2d {
             .windows(2)
             .map(|w| {
                 let (a, b) = (&w[0], &w[1]);
-                let (oa, ob) = (self.stamps[a.scan as usize].1, self.stamps[b.scan as usize].1);
+                let (oa, ob) = (
+                    self.stamps[a.scan as usize].1,
+                    self.stamps[b.scan as usize].1,
+                );
                 MotionSample {
                     odometry: oa.inverse() * ob,
                     estimate: a.pose.inverse() * b.pose,
@@ -523,7 +530,7 @@ pub fn learn_motion2d(
     mut on_round: impl FnMut(&LearnRound),
 ) -> Result<(Config, Vec<LearnRound>)> {
     let mut cfg = cfg.clone();
-    let opts = LearnOptions::for_cell(cfg.cell_size());
+    let opts = LearnOptions::from_config(&cfg);
     let mut history = Vec::with_capacity(rounds);
     for round in 1..=rounds {
         let start = Instant::now();
