@@ -128,12 +128,18 @@ impl<T: Clone> AncestryTree<T> {
 
     /// Adds a child of `parent` holding `payload`; reuses a freed id if any.
     pub fn add_child(&mut self, parent: NodeId, payload: T) -> NodeId {
+        self.add_child_records(parent, vec![payload])
+    }
+
+    /// Adds a child of `parent` holding the records `payload`, oldest first
+    /// (e.g. every pose of a trajectory segment); reuses a freed id if any.
+    pub fn add_child_records(&mut self, parent: NodeId, payload: Vec<T>) -> NodeId {
         debug_assert!(self.is_alive(parent));
         let node = Node {
             parent,
             children: SmallVec::new(),
             alive: true,
-            payload: vec![payload],
+            payload,
         };
         let id = match self.free.pop() {
             Some(id) => {

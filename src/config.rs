@@ -28,6 +28,49 @@ pub struct Config {
     pub map3d: Map3dConfig,
     /// Learning the 2-D motion model from the log (`map2d --learn-motion`).
     pub motion_learning: MotionLearningConfig,
+    /// Hierarchical SLAM (dissertation ch. 8), 2-D.
+    pub hierarchy: HierarchyConfig,
+}
+
+/// Hierarchical SLAM (dissertation ch. 8; Eliazar & Parr, NIPS 2005): the
+/// filter of `[filter]` runs over windows of `window` processed scans, each
+/// on a fresh map, and a second particle filter over whole windows keeps the
+/// global map, drawing each window's trajectory from the low-level particles.
+/// Defaults are the DP-SLAM 0.1.1 release's where it has them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HierarchyConfig {
+    /// Run hierarchically (`map2d --hierarchical` sets it).
+    pub enabled: bool,
+    /// Processed scans per low-level window (release: 40).
+    pub window: usize,
+    /// High-level particles (release: 50).
+    pub particles: usize,
+    /// Window trajectories drawn per high-level particle per window.
+    pub samples_per_particle: usize,
+    /// Range-error variance of the high-level laser model, m² (release:
+    /// 0.17, σ ≈ 0.41 m: a window's trajectory is scored as a whole, and its
+    /// own small errors must not make every sample improbable).
+    pub variance: f64,
+    /// Std of the perturbation of each drawn trajectory's start, in x and y,
+    /// in cells (release: 0.8).
+    pub perturb_xy_cells: f64,
+    /// Std of the perturbation of its heading, rad (release: 0.025).
+    pub perturb_theta: f64,
+}
+
+impl Default for HierarchyConfig {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            window: 40,
+            particles: 50,
+            samples_per_particle: 4,
+            variance: 0.17,
+            perturb_xy_cells: 0.8,
+            perturb_theta: 0.025,
+        }
+    }
 }
 
 /// How `map2d --learn-motion N` fits the C/D/T model to the SLAM trajectory
@@ -280,6 +323,7 @@ impl Default for Config {
             motion2d: Motion2dConfig::default(),
             map3d: Map3dConfig::default(),
             motion_learning: MotionLearningConfig::default(),
+            hierarchy: HierarchyConfig::default(),
         }
     }
 }
@@ -427,6 +471,22 @@ impl Config {
         }
         if l.prior_stop_every.is_nan() || l.prior_stop_every <= 0.0 {
             return bad("laser.prior_stop_every must be positive");
+        }
+        let h = &self.hierarchy;
+        if h.window == 0 || h.particles == 0 || h.samples_per_particle == 0 {
+            return bad("hierarchy.window, particles and samples_per_particle must be at least 1");
+        }
+        check_values(
+            "hierarchy",
+            &[
+                ("variance", h.variance),
+                ("perturb_xy_cells", h.perturb_xy_cells),
+                ("perturb_theta", h.perturb_theta),
+            ],
+            true,
+        )?;
+        if h.variance <= 0.0 {
+            return bad("hierarchy.variance must be positive");
         }
         let m = &self.motion_learning;
         check_values(

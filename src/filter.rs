@@ -143,6 +143,32 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         scan: &Scan<D, P>,
         scan_index: u32,
     ) -> Self {
+        Self::seeded(
+            cfg,
+            laser,
+            motion,
+            seed,
+            initial,
+            scan_index,
+            [(initial, scan)],
+        )
+    }
+
+    /// A filter whose particles all start at `initial` (map frame, the pose
+    /// of input scan `scan_index`) on a map that already holds `seeds`
+    /// (scans at map poses, e.g. the end of an earlier stretch of the log).
+    pub fn seeded<'s>(
+        cfg: FilterConfig,
+        laser: LaserModel,
+        motion: Box<dyn MotionModel<D, P>>,
+        seed: u64,
+        initial: P,
+        scan_index: u32,
+        seeds: impl IntoIterator<Item = (P, &'s Scan<D, P>)>,
+    ) -> Self
+    where
+        Scan<D, P>: 's,
+    {
         let tree = AncestryTree::new(vec![Stamp {
             scan: scan_index,
             pose: initial,
@@ -152,7 +178,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         let mut numbering = Numbering::default();
         tree.number(&mut numbering);
         let mut view = map.view(&numbering, root);
-        let first = observe(&laser, |k| view.entry(k), &initial, scan, false, false);
+        let first = observe(&laser, |k| view.entry(k), seeds, false, false);
         map.insert_fresh(root, &first.new);
         let particles = vec![
             Particle {
@@ -178,6 +204,36 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             scorer: cpu.clone(),
             caches: cpu,
         }
+    }
+
+    /// Starts over, keeping the models, the scorer and the settings: a new
+    /// map holding only `seeds`, all particles at `initial` (the pose of
+    /// input scan `scan_index`), step count 0 and RNG seed `seed`.
+    pub fn restart<'s>(
+        &mut self,
+        seed: u64,
+        initial: P,
+        scan_index: u32,
+        seeds: impl IntoIterator<Item = (P, &'s Scan<D, P>)>,
+    ) where
+        Scan<D, P>: 's,
+    {
+        let fresh = Self::seeded(
+            self.cfg.clone(),
+            self.laser.clone(),
+            Box::new(crate::motion_model::Exact),
+            seed,
+            initial,
+            scan_index,
+            seeds,
+        );
+        self.tree = fresh.tree;
+        self.map = fresh.map;
+        self.numbering = fresh.numbering;
+        self.particles = fresh.particles;
+        self.best = 0;
+        self.seed = seed;
+        self.steps = 0;
     }
 
     /// Sets how the map update records free space, from the map settings:
@@ -301,31 +357,8 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     /// Resample: indices of the samples that become the next particles,
     /// ascending, drawn by weight `exp(score − best)`.
     pub fn resample(&self, scores: &[f64]) -> Vec<usize> {
-        let n = self.cfg.particles;
-        let best = scores.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-        let weights: Vec<f64> = scores.iter().map(|s| (s - best).exp()).collect();
-        let total: f64 = weights.iter().sum();
-        let mut cumulative = Vec::with_capacity(weights.len());
-        let mut acc = 0.0;
-        for w in &weights {
-            acc += w / total;
-            cumulative.push(acc);
-        }
         let mut rng = stream(self.seed, self.steps, RESAMPLE_STREAM);
-        let pick = |u: f64| {
-            cumulative
-                .partition_point(|&c| c < u)
-                .min(weights.len() - 1)
-        };
-        let mut chosen: Vec<usize> = match self.cfg.resampling {
-            Resampling::Multinomial => (0..n).map(|_| pick(rng.random::<f64>())).collect(),
-            Resampling::Systematic => {
-                let u0 = rng.random::<f64>() / n as f64;
-                (0..n).map(|i| pick(u0 + i as f64 / n as f64)).collect()
-            }
-        };
-        chosen.sort_unstable();
-        chosen
+        draw(scores, self.cfg.particles, self.cfg.resampling, &mut rng)
     }
 
     /// Update: each chosen sample becomes a particle with a new ancestry node
@@ -339,84 +372,40 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         scan: &Scan<D, P>,
         scan_index: u32,
     ) -> usize {
-        // Observations are computed against the parents' views before any insert.
-        let shared = self.shared_free_space;
-        let n = chosen.len();
-        let sharers = match self.free_space_particles {
-            0 => n,
-            m => m.min(n),
+        let parents: Vec<NodeId> = chosen
+            .iter()
+            .map(|&j| self.particles[samples[j].parent].node)
+            .collect();
+        let update = MapUpdate {
+            shared: self.shared_free_space,
+            sharers: self.free_space_particles,
         };
-        // Exactly `sharers` of the indices 0..n pass, evenly spread.
-        let shares = |i: usize| (i * sharers) % n < sharers;
-        let share = 1.0 / sharers as f32;
-        // Observations go in chunks of particles (in index order), each
-        // chunk traced in parallel. The new entries of every particle wait
-        // for all observations (they are made against the parents' views),
-        // but the free-space parts are folded as each chunk ends into the
-        // running path length of each (owner, cell): one value per pair
-        // instead of one per particle, and the same float additions, in
-        // the same order, as adding each particle's share in place.
-        let chunk = (8 * rayon::current_num_threads()).max(16);
-        let mut new_entries: Vec<Vec<(CellKey<D>, f32, f32)>> = Vec::with_capacity(n);
-        let mut free: FxHashMap<(NodeId, CellKey<D>), f32> = FxHashMap::default();
-        let mut free_order: Vec<(NodeId, CellKey<D>)> = Vec::new();
-        for lo in (0..n).step_by(chunk) {
-            let hi = (lo + chunk).min(n);
-            let observations: Vec<Observation<D>> = map_in_preorder(
-                hi - lo,
-                |i| {
-                    let parent = self.particles[samples[chosen[lo + i]].parent].node;
-                    self.numbering.enter[parent as usize]
-                },
-                |i| {
-                    let s = &samples[chosen[lo + i]];
-                    let mut cache = self.caches.thread_cache();
-                    let mut view = self
-                        .map
-                        .view(&self.numbering, self.particles[s.parent].node);
-                    observe(
-                        &self.laser,
-                        |k| view.entry_cached(&mut cache, k),
-                        &s.pose,
-                        scan,
-                        shared,
-                        shares(lo + i),
-                    )
-                },
-            );
-            for obs in observations {
-                for (owner, k, d) in obs.free {
-                    let v = free.entry((owner, k)).or_insert_with(|| {
-                        free_order.push((owner, k));
-                        self.map.entry_of(owner, k).map_or(f32::NAN, |e| e.distance)
-                    });
-                    *v += d * share;
-                }
-                new_entries.push(obs.new);
-            }
-        }
-        let mut next = Vec::with_capacity(chosen.len());
-        let mut best = (f64::NEG_INFINITY, 0);
-        for (i, (&j, new)) in chosen.iter().zip(new_entries).enumerate() {
-            let s = &samples[j];
-            let parent = self.particles[s.parent].node;
-            let node = self.tree.add_child(
-                parent,
-                Stamp {
+        let nodes = grow(
+            &mut self.map,
+            &mut self.tree,
+            &self.numbering,
+            &self.caches,
+            &self.laser,
+            update,
+            &parents,
+            |i| [(samples[chosen[i]].pose, scan)],
+            |i| {
+                vec![Stamp {
                     scan: scan_index,
-                    pose: s.pose,
-                },
-            );
-            self.map.insert_fresh(node, &new);
+                    pose: samples[chosen[i]].pose,
+                }]
+            },
+        );
+        let mut best = (f64::NEG_INFINITY, 0);
+        let mut next = Vec::with_capacity(chosen.len());
+        for (i, (&j, node)) in chosen.iter().zip(nodes).enumerate() {
             if scores[j] > best.0 {
                 best = (scores[j], i);
             }
-            next.push(Particle { pose: s.pose, node });
-        }
-        // First-seen order: the map edits are the same on every run.
-        for key in free_order {
-            let (owner, k) = key;
-            self.map.set_distance(owner, k, free[&key]);
+            next.push(Particle {
+                pose: samples[j].pose,
+                node,
+            });
         }
         let mut parents: Vec<usize> = chosen.iter().map(|&j| samples[j].parent).collect();
         parents.dedup();
@@ -429,12 +418,22 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     /// the map alike, then renumbers the tree for the next step.
     pub fn prune(&mut self) {
         let mut held: Vec<NodeId> = self.particles.iter().map(|p| p.node).collect();
-        let changes = self.tree.maintain(&mut held);
-        self.map.apply(&changes);
+        prune(
+            &mut self.tree,
+            &mut self.map,
+            &mut self.numbering,
+            &mut held,
+        );
         for (p, h) in self.particles.iter_mut().zip(held) {
             p.node = h;
         }
-        self.tree.number(&mut self.numbering);
+    }
+
+    /// The tree, the map and the numbering, for a caller that carries on
+    /// with them (the high level of hierarchical SLAM starts from the map of
+    /// a filter built on the first scan).
+    pub fn into_parts(self) -> (AncestryTree<Stamp<P>>, DpMap<D>, Numbering) {
+        (self.tree, self.map, self.numbering)
     }
 
     /// The current particles.
@@ -473,6 +472,139 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     }
 }
 
+/// Draws `n` of the samples by weight `exp(score − best)` (culled samples
+/// have −∞ and weight 0); returns their indices, ascending.
+pub fn draw(scores: &[f64], n: usize, resampling: Resampling, rng: &mut Pcg64) -> Vec<usize> {
+    let best = scores.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let weights: Vec<f64> = scores.iter().map(|s| (s - best).exp()).collect();
+    let total: f64 = weights.iter().sum();
+    let mut cumulative = Vec::with_capacity(weights.len());
+    let mut acc = 0.0;
+    for w in &weights {
+        acc += w / total;
+        cumulative.push(acc);
+    }
+    let pick = |u: f64| {
+        cumulative
+            .partition_point(|&c| c < u)
+            .min(weights.len() - 1)
+    };
+    let mut chosen: Vec<usize> = match resampling {
+        Resampling::Multinomial => (0..n).map(|_| pick(rng.random::<f64>())).collect(),
+        Resampling::Systematic => {
+            let u0 = rng.random::<f64>() / n as f64;
+            (0..n).map(|i| pick(u0 + i as f64 / n as f64)).collect()
+        }
+    };
+    chosen.sort_unstable();
+    chosen
+}
+
+/// How [`grow`] records free space (see `MapConfig`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapUpdate {
+    /// Share free-space updates of cells all see as free.
+    pub shared: bool,
+    /// How many new nodes feed that shared update (0: all).
+    pub sharers: usize,
+}
+
+/// Adds one ancestry node per new particle `i`, a child of `parents[i]`
+/// recording `payload(i)`, with its observation of `views(i)` (scans at map
+/// poses) made against the parent's view of the map. Returns the new nodes.
+///
+/// Observations go in chunks of particles (in index order), each chunk
+/// traced in parallel. The new entries of every particle wait for all
+/// observations (they are made against the parents' views), but the
+/// free-space parts are folded as each chunk ends into the running path
+/// length of each (owner, cell): one value per pair instead of one per
+/// particle, and the same float additions, in the same order, as adding each
+/// particle's share in place.
+#[allow(clippy::too_many_arguments)]
+pub fn grow<'s, const D: usize, P: Pose<D>, T: Clone, V>(
+    map: &mut DpMap<D>,
+    tree: &mut AncestryTree<T>,
+    numbering: &Numbering,
+    caches: &CpuScorer<D>,
+    laser: &LaserModel,
+    update: MapUpdate,
+    parents: &[NodeId],
+    views: impl Fn(usize) -> V + Sync,
+    mut payload: impl FnMut(usize) -> Vec<T>,
+) -> Vec<NodeId>
+where
+    V: IntoIterator<Item = (P, &'s Scan<D, P>)>,
+    Scan<D, P>: 's,
+{
+    let n = parents.len();
+    let sharers = match update.sharers {
+        0 => n,
+        m => m.min(n),
+    };
+    // Exactly `sharers` of the indices 0..n pass, evenly spread.
+    let shares = |i: usize| (i * sharers) % n < sharers;
+    let share = 1.0 / sharers.max(1) as f32;
+    let chunk = (8 * rayon::current_num_threads()).max(16);
+    let mut new_entries: Vec<Vec<(CellKey<D>, f32, f32)>> = Vec::with_capacity(n);
+    let mut free: FxHashMap<(NodeId, CellKey<D>), f32> = FxHashMap::default();
+    let mut free_order: Vec<(NodeId, CellKey<D>)> = Vec::new();
+    for lo in (0..n).step_by(chunk) {
+        let hi = (lo + chunk).min(n);
+        let shared_map: &DpMap<D> = map;
+        let observations: Vec<Observation<D>> = map_in_preorder(
+            hi - lo,
+            |i| numbering.enter[parents[lo + i] as usize],
+            |i| {
+                let mut cache = caches.thread_cache();
+                let mut view = shared_map.view(numbering, parents[lo + i]);
+                observe(
+                    laser,
+                    |k| view.entry_cached(&mut cache, k),
+                    views(lo + i),
+                    update.shared,
+                    shares(lo + i),
+                )
+            },
+        );
+        for obs in observations {
+            for (owner, k, d) in obs.free {
+                let v = free.entry((owner, k)).or_insert_with(|| {
+                    free_order.push((owner, k));
+                    map.entry_of(owner, k).map_or(f32::NAN, |e| e.distance)
+                });
+                *v += d * share;
+            }
+            new_entries.push(obs.new);
+        }
+    }
+    let mut nodes = Vec::with_capacity(n);
+    for (i, new) in new_entries.into_iter().enumerate() {
+        let node = tree.add_child_records(parents[i], payload(i));
+        map.insert_fresh(node, &new);
+        nodes.push(node);
+    }
+    // First-seen order: the map edits are the same on every run.
+    for key in free_order {
+        let (owner, k) = key;
+        map.set_distance(owner, k, free[&key]);
+    }
+    nodes
+}
+
+/// Removes dead branches and merges only-children, in the tree and the map
+/// alike (the nodes in `held` are kept and rewritten where merged), then
+/// renumbers the tree.
+pub fn prune<const D: usize, T: Clone>(
+    tree: &mut AncestryTree<T>,
+    map: &mut DpMap<D>,
+    numbering: &mut Numbering,
+    held: &mut [NodeId],
+) {
+    let changes = tree.maintain(held);
+    map.apply(&changes);
+    tree.number(numbering);
+}
+
 /// One pose's observation of a scan.
 struct Observation<const D: usize> {
     /// New entries `(cell, hits, distance m)` for the observing particle's node.
@@ -481,35 +613,40 @@ struct Observation<const D: usize> {
     free: Vec<(NodeId, CellKey<D>, f32)>,
 }
 
-/// One pose's observation of a scan: for each cell crossed, the path length
-/// and hits of this scan added to what the particle sees (`entry_of`), or to
-/// the prior where it has never seen the cell. With `shared_free`, a cell that
-/// the particle sees as free and this scan only passes through is reported in
-/// `free` instead (if `record_free`), to be added in place to the entry it sees.
-fn observe<const D: usize, P: Pose<D>>(
+/// One particle's observation of scans (each at its map pose): for each
+/// cell crossed, the path length and hits of these scans added to what the
+/// particle sees (`entry_of`), or to the prior where it has never seen the
+/// cell. With `shared_free`, a cell that the particle sees as free and the
+/// scans only pass through is reported in `free` instead (if
+/// `record_free`), to be added in place to the entry it sees.
+fn observe<'s, const D: usize, P: Pose<D>>(
     laser: &LaserModel,
     mut entry_of: impl FnMut(CellKey<D>) -> Option<crate::dpmap::Entry>,
-    pose: &P,
-    scan: &Scan<D, P>,
+    views: impl IntoIterator<Item = (P, &'s Scan<D, P>)>,
     shared_free: bool,
     record_free: bool,
-) -> Observation<D> {
-    let sensor = pose.compose(&scan.sensor);
-    let origin = sensor.translation();
-    let mut acc: FxHashMap<CellKey<D>, (f32, f32)> =
-        FxHashMap::with_capacity_and_hasher(scan.beams.len() * 64, Default::default());
-    for b in &scan.beams {
-        laser.trace_update(
-            origin,
-            sensor.rotate(b.dir),
-            b.range,
-            b.no_return,
-            |k, h, d| {
-                let e = acc.entry(k).or_insert((0.0, 0.0));
-                e.0 += h;
-                e.1 += d;
-            },
-        );
+) -> Observation<D>
+where
+    Scan<D, P>: 's,
+{
+    let mut acc: FxHashMap<CellKey<D>, (f32, f32)> = FxHashMap::default();
+    for (pose, scan) in views {
+        let sensor = pose.compose(&scan.sensor);
+        let origin = sensor.translation();
+        acc.reserve(scan.beams.len() * 64);
+        for b in &scan.beams {
+            laser.trace_update(
+                origin,
+                sensor.rotate(b.dir),
+                b.range,
+                b.no_return,
+                |k, h, d| {
+                    let e = acc.entry(k).or_insert((0.0, 0.0));
+                    e.0 += h;
+                    e.1 += d;
+                },
+            );
+        }
     }
     let prior = laser.prior_distance as f32;
     let mut new = Vec::with_capacity(acc.len() / 4);

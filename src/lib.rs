@@ -23,6 +23,7 @@ pub mod filter;
 pub mod geometry;
 #[cfg(feature = "gpu")]
 pub mod gpu;
+pub mod hierarchy;
 pub mod io;
 pub mod laser_model;
 pub mod motion_learning;

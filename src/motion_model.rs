@@ -16,6 +16,17 @@ pub trait MotionModel<const D: usize, P: Pose<D>>: Send + Sync {
     fn sample(&self, prev: &P, delta: &P, rng: &mut Pcg64) -> P;
 }
 
+/// The motion exactly as given, without noise: for filters built only for
+/// their map, whose particles never move by sampling.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Exact;
+
+impl<const D: usize, P: Pose<D>> MotionModel<D, P> for Exact {
+    fn sample(&self, prev: &P, delta: &P, _rng: &mut Pcg64) -> P {
+        prev.compose(delta)
+    }
+}
+
 /// DP-SLAM's C/D/T model. The odometry motion is split into D (along the mean
 /// heading of the step), C (across it) and T (turn); each actual component is
 /// Gaussian with mean and standard deviation linear in `|D|` and `|T|`.

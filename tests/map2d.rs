@@ -184,3 +184,39 @@ fn motion_learning_recovers_the_simulated_odometry_bias_and_records_the_model() 
     let ate = evaluate_ate(&truth, &traj, &AteOptions::default()).unwrap();
     assert!(ate.rmse_m < 0.10, "ATE {} m", ate.rmse_m);
 }
+
+#[test]
+fn hierarchical_runs_close_every_window_and_follow_the_simulated_loop() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = prefix(SIM_LOG, 130, dir.path(), "sim.clf");
+    let mut cfg = small_config();
+    cfg.hierarchy.enabled = true;
+    cfg.hierarchy.window = 20;
+    cfg.hierarchy.particles = 10;
+    cfg.hierarchy.samples_per_particle = 2;
+    let out = dir.path().join("run");
+    let s = run_map2d(&log, &out, &cfg).unwrap();
+    let traj = read_tum(&out.join("trajectory.tum")).unwrap();
+    assert_eq!(traj.len(), s.scans);
+    // Windows join up: no jump between consecutive poses larger than the
+    // robot moves between scans (0.2 m at 1 m/s and 5 Hz) plus the
+    // perturbation's few centimetres.
+    for w in traj.windows(2) {
+        let d = (w[1].pose.translation.vector - w[0].pose.translation.vector).norm();
+        assert!(d < 0.4, "jump of {d} m at t = {}", w[1].t);
+    }
+    let truth = read_tum(Path::new(SIM_TRUTH)).unwrap();
+    let ate = evaluate_ate(&truth, &traj, &AteOptions::default()).unwrap();
+    assert!(ate.rmse_m < 0.15, "ATE {} m", ate.rmse_m);
+    // The same seed gives the same run on another thread count.
+    let out1 = dir.path().join("run1");
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| run_map2d(&log, &out1, &cfg).unwrap());
+    assert_eq!(
+        std::fs::read(out.join("trajectory.tum")).unwrap(),
+        std::fs::read(out1.join("trajectory.tum")).unwrap()
+    );
+}

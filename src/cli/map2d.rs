@@ -24,6 +24,9 @@ pub struct Map2dArgs {
     /// Learn the motion model from the log first (dissertation ch. 6): this many EM rounds, each a full SLAM run, before the final run with the learned model (docs/CONFIG.md)
     #[arg(long, default_value_t = 0)]
     pub learn_motion: usize,
+    /// Hierarchical SLAM (dissertation ch. 8): windows of the log under a high-level filter ([hierarchy] in the config)
+    #[arg(long)]
+    pub hierarchical: bool,
 }
 
 /// Flags every mapping command shares.
@@ -67,7 +70,8 @@ pub fn build_config(run: &RunArgs, particles: Option<usize>) -> dpslam::Result<C
 }
 
 pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
-    let cfg = build_config(&a.run, a.particles)?;
+    let mut cfg = build_config(&a.run, a.particles)?;
+    cfg.hierarchy.enabled |= a.hierarchical;
     let log = a.log.unwrap_or_else(|| PathBuf::from(DEFAULT_LOG));
     let s = if a.learn_motion > 0 {
         let report = |r: &dpslam::pipeline::map2d::LearnRound| {

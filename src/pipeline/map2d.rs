@@ -1,8 +1,12 @@
 //! The 2-D mapping run: a CARMEN or DP-SLAM log in, a run folder out.
 
+use crate::ancestry::{NodeId, Numbering};
 use crate::config::Config;
-use crate::filter::{ParticleFilter, StepStats};
+use crate::config::Motion2dConfig;
+use crate::dpmap::DpMap;
+use crate::filter::{ParticleFilter, Stamp, StepStats};
 use crate::geometry::{Pose, Pose2, pose2};
+use crate::hierarchy::HierarchicalFilter;
 use crate::io::log2d::{LogFormat, open_log2d};
 use crate::io::map_image::{OccupancyRaster, write_map};
 use crate::io::tum::write_tum;
@@ -248,15 +252,26 @@ pub const DISPLAY_PATH: f64 = 0.10;
 
 /// Renders the map as the particle at `index` sees it.
 pub fn raster_of(filter: &ParticleFilter<2, Pose2>, index: usize) -> Result<OccupancyRaster> {
-    let map = filter.map();
+    raster_of_view(
+        filter.map(),
+        filter.numbering(),
+        filter.particles()[index].node,
+    )
+}
+
+/// Renders `map` as the particle holding ancestry node `node` sees it.
+pub fn raster_of_view(
+    map: &DpMap<2>,
+    numbering: &Numbering,
+    node: NodeId,
+) -> Result<OccupancyRaster> {
     let (lo, hi) = map
         .bounds()
         .ok_or_else(|| Error::Invalid("the map is empty".into()))?;
     let width = (hi[0] - lo[0] + 1) as usize;
     let height = (hi[1] - lo[1] + 1) as usize;
     let mut cells = vec![None; width * height];
-    let node = filter.particles()[index].node;
-    let mut view = map.view(filter.numbering(), node);
+    let mut view = map.view(numbering, node);
     let c = map.cell_size();
     map.for_each_cell(|k, _| {
         if let Some((h, d)) = view.lookup(k) {
@@ -279,10 +294,67 @@ pub fn run_map2d(log: &Path, out: &Path, cfg: &Config) -> Result<Map2dSummary> {
     run_map2d_with(log, out, cfg, crate::backend::Backend::Cpu)
 }
 
+/// The filter of a 2-D run: DP-SLAM, or hierarchical DP-SLAM over it.
+pub enum Slam2d {
+    /// One particle filter over the whole log.
+    Flat(Box<ParticleFilter<2, Pose2>>),
+    /// Windows of the log under a high-level filter (`[hierarchy]`).
+    Hierarchical(Box<HierarchicalFilter<2, Pose2>>),
+}
+
+impl Slam2d {
+    fn step(&mut self, delta: &Pose2, scan: &Scan<2, Pose2>, index: u32) -> StepStats {
+        match self {
+            Slam2d::Flat(f) => f.step(delta, scan, index),
+            Slam2d::Hierarchical(h) => h.step(delta, scan, index),
+        }
+    }
+
+    /// The best trajectory: one stamp per processed scan, in order.
+    pub fn best_trajectory(&self) -> Vec<Stamp<Pose2>> {
+        match self {
+            Slam2d::Flat(f) => f.best_trajectory(),
+            Slam2d::Hierarchical(h) => h.best_trajectory(),
+        }
+    }
+
+    /// The map of the whole run.
+    pub fn map(&self) -> &DpMap<2> {
+        match self {
+            Slam2d::Flat(f) => f.map(),
+            Slam2d::Hierarchical(h) => h.map(),
+        }
+    }
+
+    /// The map as the best particle sees it.
+    pub fn raster(&self) -> Result<OccupancyRaster> {
+        match self {
+            Slam2d::Flat(f) => raster_of(f, f.best_index()),
+            Slam2d::Hierarchical(h) => raster_of_view(h.map(), h.numbering(), h.best_node()),
+        }
+    }
+
+    /// Live ancestry nodes (the high level's, hierarchically).
+    pub fn tree_nodes(&self) -> usize {
+        match self {
+            Slam2d::Flat(f) => f.tree().len(),
+            Slam2d::Hierarchical(h) => h.tree_nodes(),
+        }
+    }
+
+    /// The scan scorer (the low level's, hierarchically).
+    pub fn scorer(&self) -> &dyn crate::scorer::Scorer<2, Pose2> {
+        match self {
+            Slam2d::Flat(f) => f.scorer(),
+            Slam2d::Hierarchical(h) => h.low().scorer(),
+        }
+    }
+}
+
 /// A 2-D filter run over a whole log, before anything is written.
 pub struct FilterRun2d {
     /// The filter after the last scan.
-    pub filter: ParticleFilter<2, Pose2>,
+    pub filter: Slam2d,
     /// Per input scan: its time (s, or its index without time stamps) and
     /// odometry. Small, and needed for the skipped scans' poses; the maps
     /// themselves do not grow with the log.
@@ -319,7 +391,7 @@ pub fn run_filter2d(
     let f = &cfg.filter;
 
     let mut stamps: Vec<(f64, Pose2)> = Vec::new();
-    let mut filter: Option<ParticleFilter<2, Pose2>> = None;
+    let mut filter: Option<Slam2d> = None;
     let mut last_processed: Option<(usize, Pose2)> = None;
     let mut stats: Vec<StepStats> = Vec::new();
     let mut max_range = 0.0;
@@ -352,7 +424,30 @@ pub fn run_filter2d(
                 if let Some(sc) = scorer.take() {
                     filt.set_scorer(sc);
                 }
-                filter = Some(filt);
+                filter = Some(if cfg.hierarchy.enabled {
+                    let h = &cfg.hierarchy;
+                    // A zero motion through the C/D/T model draws each
+                    // axis from its floor: x, y ~ N(0, σ_xy), θ ~ N(0, σ_θ).
+                    let perturb = CdtModel {
+                        cfg: Motion2dConfig {
+                            std_d: [0.0; 2],
+                            std_c: [0.0; 2],
+                            std_t: [0.0; 2],
+                            min_std_xy: h.perturb_xy_cells * cfg.cell_size(),
+                            min_std_t: h.perturb_theta,
+                            ..Motion2dConfig::default()
+                        },
+                    };
+                    Slam2d::Hierarchical(Box::new(HierarchicalFilter::new(
+                        filt,
+                        cfg,
+                        Box::new(perturb),
+                        &scan,
+                        index as u32,
+                    )))
+                } else {
+                    Slam2d::Flat(Box::new(filt))
+                });
                 last_processed = Some((index, s.odometry));
             }
             (Some(filt), Some((_, odo0))) => {
@@ -370,7 +465,10 @@ pub fn run_filter2d(
         bar.set_position(reader.bytes_read());
     }
     bar.finish_and_clear();
-    let filter = filter.ok_or_else(|| Error::in_file(log, "no laser scans"))?;
+    let mut filter = filter.ok_or_else(|| Error::in_file(log, "no laser scans"))?;
+    if let Slam2d::Hierarchical(h) = &mut filter {
+        h.finish();
+    }
     let data_duration_s = match (first_time, last_time) {
         (Some(a), Some(b)) if b > a => Some(b - a),
         _ => None,
@@ -466,7 +564,7 @@ pub fn run_map2d_with(
     if std::env::var_os("DPSLAM_DEBUG").is_some() {
         eprintln!("list lengths: {:?}", filter.map().list_length_histogram(64));
     }
-    let raster = raster_of(&filter, filter.best_index())?;
+    let raster = filter.raster()?;
     let wall = start.elapsed().as_secs_f64();
     let n_steps = stats.len().max(1) as f64;
     for w in &warnings {
@@ -488,7 +586,7 @@ pub fn run_map2d_with(
         peak_memory_mib: super::peak_memory_mib(),
         map_entries: filter.map().entry_count(),
         map_memory_mib: filter.map().memory_bytes() as f64 / (1024.0 * 1024.0),
-        tree_nodes: filter.tree().len(),
+        tree_nodes: filter.tree_nodes(),
         mean_after_quick: stats.iter().map(|s| s.after_quick as f64).sum::<f64>() / n_steps,
         mean_after_full: stats.iter().map(|s| s.after_full as f64).sum::<f64>() / n_steps,
         backend: backend_used,
