@@ -53,7 +53,7 @@ pub struct ScoreContext<'a, const D: usize, P: Pose<D>> {
 }
 
 /// A device scorer's traffic over its life (see [`Scorer::transfers`]).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct Transfers {
     /// Successful scoring calls.
     pub calls: u64,

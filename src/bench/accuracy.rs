@@ -115,6 +115,10 @@ pub struct AccuracyOptions {
     /// The particle-scaling measurement to run after the datasets (its table
     /// and plot go into the report); `None` skips it, and `quick` never runs it.
     pub scaling: Option<ScalingOptions>,
+    /// A `dpslam` executable to run each dataset's `map2d` in a process of
+    /// its own, so that its peak memory is its own (the allocator of one
+    /// process keeps memory from the runs before); `None`: in this process.
+    pub mapper: Option<PathBuf>,
 }
 
 impl AccuracyOptions {
@@ -134,6 +138,7 @@ impl AccuracyOptions {
             noise_seed: DEFAULT_NOISE_SEED,
             noise: NoiseModel::default(),
             command: String::new(),
+            mapper: None,
             scaling: Some(ScalingOptions {
                 log: root.join("data/sim2d/sim2d.clf"),
                 particles: vec![100, 300, 1000, 3000],
@@ -414,9 +419,18 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
     };
 
     let run_dir = dir.join("run");
-    let reset = reset_peak_memory();
-    let summary = run_map2d(&log, &run_dir, &opts.cfg)?;
-    let peak = crate::pipeline::peak_memory_mib().filter(|_| reset);
+    let (summary, peak) = match &opts.mapper {
+        Some(exe) => {
+            let s = map2d_process(exe, &log, &run_dir, &dir.join("config.toml"), &opts.cfg)?;
+            let peak = s.peak_memory_mib;
+            (s, peak)
+        }
+        None => {
+            let reset = reset_peak_memory();
+            let s = run_map2d(&log, &run_dir, &opts.cfg)?;
+            (s, crate::pipeline::peak_memory_mib().filter(|_| reset))
+        }
+    };
     let mut estimate = read_tum(&run_dir.join("trajectory.tum"))?;
     let mut odometry = odometry;
     if matching == Matching::ScanIndex {
@@ -543,6 +557,65 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
     Ok(result)
 }
 
+/// The source tree's git commit (short hash, "+ changes" when tracked files
+/// differ from it), if this build's source folder is a git checkout.
+fn source_commit() -> Option<String> {
+    let git = |args: &[&str]| {
+        std::process::Command::new("git")
+            .arg("-C")
+            .arg(env!("CARGO_MANIFEST_DIR"))
+            .args(args)
+            .output()
+            .ok()
+            .filter(|o| o.status.success())
+            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+    };
+    let hash = git(&["rev-parse", "--short", "HEAD"]).filter(|h| !h.is_empty())?;
+    let dirty =
+        git(&["status", "--porcelain", "--untracked-files=no"]).is_some_and(|s| !s.is_empty());
+    Some(if dirty {
+        format!("{hash} + changes")
+    } else {
+        hash
+    })
+}
+
+/// Runs `exe map2d LOG --out OUT --config CONFIG` with `cfg` written to
+/// `config`, and returns the summary it wrote (`OUT/run.json`).
+fn map2d_process(
+    exe: &Path,
+    log: &Path,
+    out: &Path,
+    config: &Path,
+    cfg: &Config,
+) -> Result<crate::pipeline::map2d::Map2dSummary> {
+    crate::pipeline::write_atomic(config, cfg.to_toml().as_bytes())?;
+    let run = std::process::Command::new(exe)
+        .arg("map2d")
+        .arg(log)
+        .arg("--out")
+        .arg(out)
+        .arg("--config")
+        .arg(config)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .output()
+        .map_err(|e| Error::io(exe, e))?;
+    if !run.status.success() {
+        let err = String::from_utf8_lossy(&run.stderr);
+        return Err(Error::Invalid(format!(
+            "{} map2d {} failed ({}): {}",
+            exe.display(),
+            log.display(),
+            run.status,
+            err.trim()
+        )));
+    }
+    let json = out.join("run.json");
+    let text = std::fs::read_to_string(&json).map_err(|e| Error::io(&json, e))?;
+    serde_json::from_str(&text).map_err(|e| Error::Invalid(format!("{}: {e}", json.display())))
+}
+
 /// Runs the scaling bench with `so` (its own `particles` per point, the
 /// rest of the configuration from `so.cfg`) and writes
 /// `time-vs-particles.png` and `scaling.json` into `dir`.
@@ -562,6 +635,8 @@ pub fn run_accuracy(opts: &AccuracyOptions) -> Result<AccuracyReport> {
     opts.cfg.validate()?;
     opts.noise.validate()?;
     let start = Instant::now();
+    // Before this run rewrites the tracked result files.
+    let commit = source_commit();
     let (datasets, mut skipped) = plan(opts);
     if datasets.is_empty() {
         return Err(Error::Config(format!(
@@ -619,14 +694,21 @@ pub fn run_accuracy(opts: &AccuracyOptions) -> Result<AccuracyReport> {
     let report = AccuracyReport {
         quick: opts.quick,
         command: opts.command.clone(),
-        version: env!("CARGO_PKG_VERSION").into(),
+        version: match commit {
+            Some(c) => format!("{} (commit {c})", env!("CARGO_PKG_VERSION")),
+            None => env!("CARGO_PKG_VERSION").into(),
+        },
         threads: rayon::current_num_threads(),
         noise_seed: opts.noise_seed,
         noise: opts.noise.to_string(),
-        memory_note: "peak resident memory of the process during each run \
-                      (VmHWM, reset before each run via /proc/self/clear_refs; \
-                      memory the allocator kept from earlier runs counts)"
-            .into(),
+        memory_note: if opts.mapper.is_some() {
+            "peak resident memory of each run's own `dpslam map2d` process (VmHWM)".into()
+        } else {
+            "peak resident memory of the process during each run \
+             (VmHWM, reset before each run via /proc/self/clear_refs; \
+             memory the allocator kept from earlier runs counts)"
+                .into()
+        },
         total_wall_s: start.elapsed().as_secs_f64(),
         runs,
         skipped,

@@ -127,6 +127,8 @@ fn run_accuracy(a: AccuracyArgs) -> dpslam::Result<()> {
     opts.only = a.only;
     opts.noise_seed = a.noise_seed;
     opts.command = std::env::args().collect::<Vec<_>>().join(" ");
+    // Each dataset in a `dpslam map2d` process of its own: per-run peak memory.
+    opts.mapper = std::env::current_exe().ok();
     if a.no_scaling || a.quick {
         opts.scaling = None;
     }

@@ -70,7 +70,7 @@ pub fn new_filter(
 }
 
 /// What a 2-D run did; written as `run.json`.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct Map2dSummary {
     /// dpslam version.
     pub version: String,
