@@ -201,3 +201,36 @@ fn quick_accuracy_on_the_simulator() {
     assert!(opts.out.join("sim2d/run/trajectory.tum").is_file());
     assert!(opts.out.join("results.json").is_file());
 }
+
+/// `bench accuracy --learn-motion 1`: the dataset is mapped by a `dpslam
+/// map2d --learn-motion 1` process of its own, which leaves the learned
+/// model in the run folder, and the report says the model was learned.
+#[test]
+fn accuracy_with_motion_learning_in_a_mapper_process() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = Config::default();
+    cfg.filter.particles = 10;
+    let mut opts = AccuracyOptions::new(cfg);
+    opts.quick = true;
+    opts.only = vec!["sim2d".into()];
+    opts.out = dir.path().join("out");
+    opts.docs = dir.path().join("docs");
+    opts.mapper = Some(env!("CARGO_BIN_EXE_dpslam").into());
+    opts.learn_motion = 1;
+    let report = run_accuracy(&opts).unwrap();
+    assert_eq!(report.runs.len(), 1, "{:?}", report.skipped);
+    let r = &report.runs[0];
+    assert!(r.ate_rmse_m.unwrap().is_finite());
+    assert!(r.peak_memory_mib.unwrap() > 0.0, "the child's own VmHWM");
+    let note = r.note.as_deref().unwrap_or("");
+    assert!(note.contains("motion model learned"), "{note}");
+    let history = std::fs::read_to_string(opts.out.join("sim2d/run/motion_learning.json")).unwrap();
+    let rounds: serde_json::Value = serde_json::from_str(&history).unwrap();
+    assert_eq!(rounds.as_array().map(Vec::len), Some(1), "{history}");
+    // The wall time covers the learning round and the final run.
+    let run: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(opts.out.join("sim2d/run/run.json")).unwrap(),
+    )
+    .unwrap();
+    assert!(r.wall_time_s > run["wall_time_s"].as_f64().unwrap());
+}

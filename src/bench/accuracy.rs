@@ -24,7 +24,7 @@ use crate::eval::relations::{
 use crate::geometry::xyt;
 use crate::io::log2d::open_log2d;
 use crate::io::tum::{Stamped, read_tum};
-use crate::pipeline::map2d::run_map2d;
+use crate::pipeline::map2d::{run_map2d, run_map2d_learning};
 use crate::sim::perturb::{NoiseModel, perturb_log};
 use crate::{Error, Result};
 use nalgebra::{Isometry3, Point3, Vector3};
@@ -119,6 +119,10 @@ pub struct AccuracyOptions {
     /// its own, so that its peak memory is its own (the allocator of one
     /// process keeps memory from the runs before); `None`: in this process.
     pub mapper: Option<PathBuf>,
+    /// Rounds of motion-model learning before each dataset's final run
+    /// (`map2d --learn-motion N`, dissertation ch. 6); 0 maps with the
+    /// configured model. The wall time then covers the rounds as well.
+    pub learn_motion: usize,
 }
 
 impl AccuracyOptions {
@@ -139,6 +143,7 @@ impl AccuracyOptions {
             noise: NoiseModel::default(),
             command: String::new(),
             mapper: None,
+            learn_motion: 0,
             scaling: Some(ScalingOptions {
                 log: root.join("data/sim2d/sim2d.clf"),
                 particles: vec![100, 300, 1000, 3000],
@@ -419,18 +424,41 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
     };
 
     let run_dir = dir.join("run");
-    let (summary, peak) = match &opts.mapper {
+    let mapping = Instant::now();
+    let (mut summary, peak) = match &opts.mapper {
         Some(exe) => {
-            let s = map2d_process(exe, &log, &run_dir, &dir.join("config.toml"), &opts.cfg)?;
+            let config = dir.join("config.toml");
+            let s = map2d_process(exe, &log, &run_dir, &config, &opts.cfg, opts.learn_motion)?;
             let peak = s.peak_memory_mib;
             (s, peak)
         }
         None => {
             let reset = reset_peak_memory();
-            let s = run_map2d(&log, &run_dir, &opts.cfg)?;
+            let s = if opts.learn_motion > 0 {
+                let backend = crate::backend::Backend::Cpu;
+                run_map2d_learning(
+                    &log,
+                    &run_dir,
+                    &opts.cfg,
+                    backend,
+                    opts.learn_motion,
+                    |_| {},
+                )?
+                .0
+            } else {
+                run_map2d(&log, &run_dir, &opts.cfg)?
+            };
             (s, crate::pipeline::peak_memory_mib().filter(|_| reset))
         }
     };
+    if opts.learn_motion > 0 {
+        // The learning rounds are part of what it costs to get this result.
+        summary.wall_time_s = mapping.elapsed().as_secs_f64();
+        notes.push(format!(
+            "motion model learned from the log ({} rounds, included in the wall time)",
+            opts.learn_motion
+        ));
+    }
     let mut estimate = read_tum(&run_dir.join("trajectory.tum"))?;
     let mut odometry = odometry;
     if matching == Matching::ScanIndex {
@@ -580,23 +608,29 @@ fn source_commit() -> Option<String> {
     })
 }
 
-/// Runs `exe map2d LOG --out OUT --config CONFIG` with `cfg` written to
-/// `config`, and returns the summary it wrote (`OUT/run.json`).
+/// Runs `exe map2d LOG --out OUT --config CONFIG [--learn-motion N]` with
+/// `cfg` written to `config`, and returns the summary it wrote (`OUT/run.json`).
 fn map2d_process(
     exe: &Path,
     log: &Path,
     out: &Path,
     config: &Path,
     cfg: &Config,
+    learn_motion: usize,
 ) -> Result<crate::pipeline::map2d::Map2dSummary> {
     crate::pipeline::write_atomic(config, cfg.to_toml().as_bytes())?;
-    let run = std::process::Command::new(exe)
+    let mut command = std::process::Command::new(exe);
+    command
         .arg("map2d")
         .arg(log)
         .arg("--out")
         .arg(out)
         .arg("--config")
-        .arg(config)
+        .arg(config);
+    if learn_motion > 0 {
+        command.arg("--learn-motion").arg(learn_motion.to_string());
+    }
+    let run = command
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped())
         .output()

@@ -102,6 +102,10 @@ pub struct AccuracyArgs {
     /// simulated log, ~3 min on 2 cores) that follows the datasets
     #[arg(long)]
     pub no_scaling: bool,
+    /// Learn each log's motion model first (N EM rounds, as `map2d
+    /// --learn-motion N`; the wall time includes them)
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub learn_motion: usize,
 }
 
 /// A benchmark's configuration: as `map2d`'s, without a `--seed` flag (the
@@ -126,6 +130,7 @@ fn run_accuracy(a: AccuracyArgs) -> dpslam::Result<()> {
     opts.quick = a.quick;
     opts.only = a.only;
     opts.noise_seed = a.noise_seed;
+    opts.learn_motion = a.learn_motion;
     opts.command = std::env::args().collect::<Vec<_>>().join(" ");
     // Each dataset in a `dpslam map2d` process of its own: per-run peak memory.
     opts.mapper = std::env::current_exe().ok();
