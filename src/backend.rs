@@ -105,7 +105,8 @@ pub const GPU_COMPILED: bool = cfg!(feature = "gpu");
 
 /// A scorer for `backend` and a description of the backend actually used:
 /// `"cpu"`, or `"gpu"` followed by the precision and the adapter (e.g.
-/// `"gpu f64 on llvmpipe (…)"`).
+/// `"gpu f64 on llvmpipe (…)"`), or `"cpu (auto: REASON)"` when `auto`
+/// found no usable GPU.
 ///
 /// Errors ([`crate::Error::Gpu`]) only for [`Backend::Gpu`] when this build lacks
 /// the `gpu` feature or no Vulkan adapter can be opened (with
@@ -120,7 +121,9 @@ pub fn make_scorer<const D: usize, P: Pose<D>>(
             Ok(s) => Ok(s),
             Err(e) => {
                 eprintln!("dpslam: {e}; using the CPU backend");
-                Ok((Box::new(CpuScorer::<D>::new()), "cpu".into()))
+                // run.json keeps why `auto` ended on the CPU, not only the console.
+                let used = format!("cpu (auto: {e})");
+                Ok((Box::new(CpuScorer::<D>::new()), used))
             }
         },
     }

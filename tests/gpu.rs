@@ -449,6 +449,48 @@ fn map2d_with_backend_gpu_and_no_adapter_fails_cleanly() {
     );
 }
 
+#[test]
+fn map2d_with_backend_auto_and_no_adapter_falls_back_and_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    // The first 15 scans of the simulated loop: enough for a run.
+    let src = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sim2d/sim2d.clf"),
+    )
+    .unwrap();
+    let mut scans = 0;
+    let short: String = src
+        .lines()
+        .take_while(|l| {
+            scans += usize::from(l.starts_with("FLASER"));
+            scans <= 15
+        })
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let log = dir.path().join("short.clf");
+    std::fs::write(&log, short).unwrap();
+    let run = dir.path().join("run");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_dpslam"))
+        .args(["map2d", "--backend", "auto", "--particles", "5", "--out"])
+        .arg(&run)
+        .arg(&log)
+        .env("WGPU_BACKEND", "gl")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("no Vulkan adapter") && err.contains("using the CPU backend"),
+        "{err}"
+    );
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
+    let used = summary["backend"].as_str().unwrap();
+    assert!(
+        used.starts_with("cpu (auto: ") && used.contains("no Vulkan adapter"),
+        "{used}"
+    );
+}
+
 /// Positions `x y z` (m) of a TUM trajectory, in file order.
 fn trajectory(path: &std::path::Path) -> Vec<[f64; 3]> {
     std::fs::read_to_string(path)

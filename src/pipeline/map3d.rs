@@ -140,7 +140,8 @@ pub struct Map3dSummary {
     pub mean_after_quick: f64,
     /// Mean number of samples surviving all culling.
     pub mean_after_full: f64,
-    /// Scan-likelihood backend used: "cpu", or "gpu", its precision and adapter.
+    /// Scan-likelihood backend used: "cpu", or "gpu", its precision and
+    /// adapter, or "cpu (auto: why no GPU)".
     pub backend: String,
     /// The GPU backend's traffic (map bytes uploaded against re-uploading
     /// the whole map at every step); absent on the CPU.
