@@ -166,18 +166,24 @@ fn prepared_log_applies_the_motion_gate() {
     assert!(log.warm_filter(7, 31).is_err());
 }
 
-/// `bench accuracy --quick --only sim2d` end to end, with few particles so
-/// that it stays well under a minute.
-#[test]
-fn quick_accuracy_on_the_simulator() {
-    let dir = tempfile::tempdir().unwrap();
+/// `bench accuracy --quick --only sim2d` at 10 particles, writing below `dir`.
+fn quick_sim2d(dir: &Path) -> AccuracyOptions {
     let mut cfg = Config::default();
     cfg.filter.particles = 10;
     let mut opts = AccuracyOptions::new(cfg);
     opts.quick = true;
     opts.only = vec!["sim2d".into()];
-    opts.out = dir.path().join("out");
-    opts.docs = dir.path().join("docs");
+    opts.out = dir.join("out");
+    opts.docs = dir.join("docs");
+    opts
+}
+
+/// `bench accuracy --quick --only sim2d` end to end, with few particles so
+/// that it stays well under a minute.
+#[test]
+fn quick_accuracy_on_the_simulator() {
+    let dir = tempfile::tempdir().unwrap();
+    let opts = quick_sim2d(dir.path());
     let report = run_accuracy(&opts).unwrap();
     assert_eq!(report.runs.len(), 1, "{:?}", report.skipped);
     let r = &report.runs[0];
@@ -208,13 +214,7 @@ fn quick_accuracy_on_the_simulator() {
 #[test]
 fn accuracy_with_motion_learning_in_a_mapper_process() {
     let dir = tempfile::tempdir().unwrap();
-    let mut cfg = Config::default();
-    cfg.filter.particles = 10;
-    let mut opts = AccuracyOptions::new(cfg);
-    opts.quick = true;
-    opts.only = vec!["sim2d".into()];
-    opts.out = dir.path().join("out");
-    opts.docs = dir.path().join("docs");
+    let mut opts = quick_sim2d(dir.path());
     opts.mapper = Some(env!("CARGO_BIN_EXE_dpslam").into());
     opts.learn_motion = 1;
     let report = run_accuracy(&opts).unwrap();
