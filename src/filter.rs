@@ -396,37 +396,21 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
                 }]
             },
         );
-        let mut best = (f64::NEG_INFINITY, 0);
-        let mut next = Vec::with_capacity(chosen.len());
-        for (i, (&j, node)) in chosen.iter().zip(nodes).enumerate() {
-            if scores[j] > best.0 {
-                best = (scores[j], i);
-            }
-            next.push(Particle {
-                pose: samples[j].pose,
-                node,
-            });
-        }
+        (self.particles, self.best) = offspring(chosen, scores, nodes, |j| samples[j].pose);
         let mut parents: Vec<usize> = chosen.iter().map(|&j| samples[j].parent).collect();
         parents.dedup();
-        self.particles = next;
-        self.best = best.1;
         parents.len()
     }
 
     /// Prune: removes dead branches and merges only-children, in the tree and
     /// the map alike, then renumbers the tree for the next step.
     pub fn prune(&mut self) {
-        let mut held: Vec<NodeId> = self.particles.iter().map(|p| p.node).collect();
         prune(
             &mut self.tree,
             &mut self.map,
             &mut self.numbering,
-            &mut held,
+            &mut self.particles,
         );
-        for (p, h) in self.particles.iter_mut().zip(held) {
-            p.node = h;
-        }
     }
 
     /// The tree, the map and the numbering, for a caller that carries on
@@ -591,17 +575,44 @@ where
     nodes
 }
 
+/// The particles made from the `chosen` samples: sample `chosen[i]` at
+/// `pose(chosen[i])` (map frame) on the new node `nodes[i]` (from
+/// [`grow`]); with the index of the best-scoring one (the first on ties).
+pub fn offspring<P: Copy>(
+    chosen: &[usize],
+    scores: &[f64],
+    nodes: Vec<NodeId>,
+    pose: impl Fn(usize) -> P,
+) -> (Vec<Particle<P>>, usize) {
+    let mut best = (f64::NEG_INFINITY, 0);
+    let mut next = Vec::with_capacity(chosen.len());
+    for (i, (&j, node)) in chosen.iter().zip(nodes).enumerate() {
+        if scores[j] > best.0 {
+            best = (scores[j], i);
+        }
+        next.push(Particle {
+            pose: pose(j),
+            node,
+        });
+    }
+    (next, best.1)
+}
+
 /// Removes dead branches and merges only-children, in the tree and the map
-/// alike (the nodes in `held` are kept and rewritten where merged), then
+/// alike (the particles' nodes are kept and rewritten where merged), then
 /// renumbers the tree.
-pub fn prune<const D: usize, T: Clone>(
+pub fn prune<const D: usize, T: Clone, P>(
     tree: &mut AncestryTree<T>,
     map: &mut DpMap<D>,
     numbering: &mut Numbering,
-    held: &mut [NodeId],
+    particles: &mut [Particle<P>],
 ) {
-    let changes = tree.maintain(held);
+    let mut held: Vec<NodeId> = particles.iter().map(|p| p.node).collect();
+    let changes = tree.maintain(&mut held);
     map.apply(&changes);
+    for (p, h) in particles.iter_mut().zip(held) {
+        p.node = h;
+    }
     tree.number(numbering);
 }
 

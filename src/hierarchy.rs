@@ -25,7 +25,7 @@ use crate::ancestry::{AncestryTree, NodeId, Numbering};
 use crate::config::{Config, FilterConfig, HierarchyConfig};
 use crate::dpmap::DpMap;
 use crate::filter::{
-    MapUpdate, Particle, ParticleFilter, Stamp, StepStats, draw, grow, prune, stream,
+    MapUpdate, Particle, ParticleFilter, Stamp, StepStats, draw, grow, offspring, prune, stream,
 };
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
@@ -181,29 +181,17 @@ impl<const D: usize, P: Pose<D>> HighLevel<D, P> {
                     .collect()
             },
         );
-        let mut best = (f64::NEG_INFINITY, 0);
-        let mut next = Vec::with_capacity(chosen.len());
-        for (i, (&c, node)) in chosen.iter().zip(nodes).enumerate() {
-            if scores[c] > best.0 {
-                best = (scores[c], i);
-            }
-            let pose = *segments[c].poses.last().expect("a window has scans");
-            next.push(Particle { pose, node });
-        }
+        (self.particles, self.best) = offspring(&chosen, &scores, nodes, |c| {
+            *segments[c].poses.last().expect("a window has scans")
+        });
         let mut distinct: Vec<usize> = chosen.iter().map(|&c| segments[c].parent).collect();
         distinct.dedup();
-        self.particles = next;
-        self.best = best.1;
-        let mut held: Vec<NodeId> = self.particles.iter().map(|p| p.node).collect();
         prune(
             &mut self.tree,
             &mut self.map,
             &mut self.numbering,
-            &mut held,
+            &mut self.particles,
         );
-        for (p, h) in self.particles.iter_mut().zip(held) {
-            p.node = h;
-        }
         WindowStats {
             scans: scans.len(),
             samples: segments.len(),
