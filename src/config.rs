@@ -30,6 +30,9 @@ pub struct Config {
     pub motion_learning: MotionLearningConfig,
     /// Hierarchical SLAM (dissertation ch. 8), 2-D.
     pub hierarchy: HierarchyConfig,
+    /// Topics read from a ROS bag input (`--scan-topic`, `--odom-topic`;
+    /// unset: guessed, see [`crate::io::bag`]).
+    pub bag: crate::io::bag::scans2d::TopicChoice,
 }
 
 /// Hierarchical SLAM (dissertation ch. 8; Eliazar & Parr, NIPS 2005): the
@@ -324,6 +327,7 @@ impl Default for Config {
             map3d: Map3dConfig::default(),
             motion_learning: MotionLearningConfig::default(),
             hierarchy: HierarchyConfig::default(),
+            bag: Default::default(),
         }
     }
 }

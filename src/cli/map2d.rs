@@ -8,7 +8,7 @@ pub const DEFAULT_LOG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/sim2d/s
 
 #[derive(clap::Args, Debug)]
 pub struct Map2dArgs {
-    /// CARMEN (.clf/.log) or DP-SLAM log, plain or gzip [default: the shipped simulated loop]
+    /// CARMEN (.clf/.log) or DP-SLAM log, plain or gzip, or a ROS bag (.bag, .mcap, .db3 or a ROS 2 bag directory) [default: the shipped simulated loop]
     pub log: Option<PathBuf>,
     /// Output folder (map.png, map.pgm, map.yaml, trajectory.tum, run.json, config.toml)
     #[arg(long, default_value = "out/map2d")]
@@ -18,6 +18,8 @@ pub struct Map2dArgs {
     pub particles: Option<usize>,
     #[command(flatten)]
     pub run: RunArgs,
+    #[command(flatten)]
+    pub topics: TopicArgs,
     /// Where scan likelihoods are computed (gpu needs a build with `--features gpu` and a Vulkan driver; auto falls back to cpu)
     #[arg(long, value_enum, default_value_t = dpslam::backend::Backend::Cpu)]
     pub backend: dpslam::backend::Backend,
@@ -41,6 +43,29 @@ pub struct RunArgs {
     /// Worker threads (0 = all cores)
     #[arg(long)]
     pub threads: Option<usize>,
+}
+
+/// Topic flags for ROS bag inputs.
+#[derive(clap::Args, Debug)]
+pub struct TopicArgs {
+    /// ROS bag input: the sensor_msgs/LaserScan (map2d) or PointCloud2 (map3d) topic [default: the bag's only one]
+    #[arg(long, value_name = "TOPIC")]
+    pub scan_topic: Option<String>,
+    /// ROS bag input: the nav_msgs/Odometry or tf topic [default: the only Odometry topic, else /tf odom -> base]
+    #[arg(long, value_name = "TOPIC")]
+    pub odom_topic: Option<String>,
+}
+
+impl TopicArgs {
+    /// Sets the configuration's `[bag]` topics from the flags given.
+    pub fn apply(&self, cfg: &mut Config) {
+        if let Some(t) = &self.scan_topic {
+            cfg.bag.scan_topic = Some(t.clone());
+        }
+        if let Some(t) = &self.odom_topic {
+            cfg.bag.odom_topic = Some(t.clone());
+        }
+    }
 }
 
 /// Loads the config file (if any) and applies the flags over it.
@@ -72,6 +97,7 @@ pub fn build_config(run: &RunArgs, particles: Option<usize>) -> dpslam::Result<C
 pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
     let mut cfg = build_config(&a.run, a.particles)?;
     cfg.hierarchy.enabled |= a.hierarchical;
+    a.topics.apply(&mut cfg);
     let log = a.log.unwrap_or_else(|| PathBuf::from(DEFAULT_LOG));
     let s = if a.learn_motion > 0 {
         let report = |r: &dpslam::pipeline::map2d::LearnRound| {

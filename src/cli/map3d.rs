@@ -12,7 +12,9 @@ pub const DEFAULT_ODOMETRY: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/si
 #[derive(clap::Args, Debug)]
 pub struct Map3dArgs {
     /// Directory of sweeps (.pcd .ply .bin .xyz .txt .vtk .3d), mapped in
-    /// file-name order [default: the shipped simulated sequence, with its odometry]
+    /// file-name order, or a ROS bag (.bag, .mcap, .db3 or a ROS 2 bag
+    /// directory) of sensor_msgs/PointCloud2 [default: the shipped simulated
+    /// sequence, with its odometry]
     pub input: Option<PathBuf>,
     /// Output folder (map.ply, trajectory.tum, run.json, config.toml, points.ply)
     #[arg(long)]
@@ -25,6 +27,8 @@ pub struct Map3dArgs {
     pub particles: Option<usize>,
     #[command(flatten)]
     pub run: super::map2d::RunArgs,
+    #[command(flatten)]
+    pub topics: super::map2d::TopicArgs,
     /// Also write points.ply: the raw points registered with the trajectory
     #[arg(long)]
     pub points: bool,
@@ -54,6 +58,7 @@ pub fn build_config_3d(a: &Map3dArgs) -> dpslam::Result<Config> {
     if a.particles.is_none() && !file_sets_particles(a.run.config.as_ref())? {
         cfg.filter.particles = DEFAULT_PARTICLES_3D;
     }
+    a.topics.apply(&mut cfg);
     Ok(cfg)
 }
 

@@ -7,7 +7,7 @@ use crate::dpmap::DpMap;
 use crate::filter::{ParticleFilter, Stamp, StepStats};
 use crate::geometry::{Pose, Pose2, pose2};
 use crate::hierarchy::HierarchicalFilter;
-use crate::io::log2d::{LogFormat, open_log2d};
+use crate::io::log2d::{LogFormat, LogReader2d, open_log2d, open_log2d_with};
 use crate::io::map_image::{OccupancyRaster, write_map};
 use crate::io::tum::write_tum;
 use crate::laser_model::LaserModel;
@@ -32,8 +32,17 @@ pub fn sensor_mount(cfg: &Config, format: LogFormat) -> Pose2 {
         Some([x, y, th]) => pose2(x, y, th),
         None => match format {
             LogFormat::DpSlam => pose2(DPSLAM_LASER_OFFSET, 0.0, 0.0),
-            LogFormat::Carmen => Pose2::identity(),
+            LogFormat::Carmen | LogFormat::RosBag => Pose2::identity(),
         },
+    }
+}
+
+/// [`sensor_mount`] for an open log: a ROS bag's laser mount from its
+/// static transforms, unless the configuration sets one.
+pub fn sensor_mount_of(cfg: &Config, reader: &LogReader2d) -> Pose2 {
+    match (cfg.motion2d.sensor_offset, reader.format()) {
+        (None, LogFormat::RosBag) => reader.sensor_offset().unwrap_or_else(Pose2::identity),
+        _ => sensor_mount(cfg, reader.format()),
     }
 }
 
@@ -386,8 +395,9 @@ pub fn run_filter2d(
     cfg.validate()?;
     let (scorer, backend_used) = crate::backend::make_scorer::<2, Pose2>(backend)?;
     let mut scorer = Some(scorer);
-    let mut reader = open_log2d(log)?;
+    let mut reader = open_log2d_with(log, &cfg.bag)?;
     let format = reader.format();
+    let mount = sensor_mount_of(cfg, &reader);
     let bar = super::progress_bar(reader.total_bytes(), "map2d");
     let f = &cfg.filter;
 
@@ -399,7 +409,7 @@ pub fn run_filter2d(
     let mut beams_per_scan = 0;
     let mut first_time = None;
     let mut last_time = None;
-    let survey = RangeSurvey::of_log(log)?;
+    let survey = RangeSurvey::of_scans(open_log2d_with(log, &cfg.bag)?)?;
     let sensor_max = survey.sensor_max(cfg.laser.trust_declared_max_range);
 
     while let Some(item) = reader.next() {
@@ -414,7 +424,7 @@ pub fn run_filter2d(
             last_time = Some(t);
         }
         stamps.push((t, s.odometry));
-        let sensor = sensor_mount(cfg, format);
+        let sensor = mount;
         match (&mut filter, last_processed) {
             (None, _) => {
                 max_range = usable_range(cfg, s.max_range);

@@ -1,6 +1,7 @@
 //! The 3-D mapping run: a directory of laser sweeps in, a run folder out.
 //!
-//! Per sweep (file-name order, see [`list_sweeps`]):
+//! Per sweep (file-name order, see [`crate::io::sweeps::list_sweeps`], or a
+//! bag's clouds, see [`SweepSource`]):
 //! 1. the points become a [`Scan<3, Pose3>`] ([`sweep_to_scan`]): one beam per
 //!    sensor-frame point (direction `p/|p|`, range `|p|`), points closer than
 //!    `map3d.min_range` (0.5 m) dropped, down-sampled to one beam per
@@ -37,8 +38,8 @@
 use crate::config::{Config, Map3dConfig};
 use crate::filter::{ParticleFilter, StepStats};
 use crate::geometry::{Pose, Pose3};
+use crate::io::bag::sweeps3d::SweepSource;
 use crate::io::ply::{VoxelPoint, write_points_ply, write_voxel_ply};
-use crate::io::sweeps::{list_sweeps, read_sweep};
 use crate::io::tum::{read_poses, write_tum};
 use crate::laser_model::LaserModel;
 use crate::motion_model::{AlignedGaussian6dModel, Gaussian6dModel, ProposalNoise};
@@ -302,7 +303,7 @@ pub fn run_map3d_with(
     let m = &cfg.map3d;
     validate_map3d(m)?;
     let start = Instant::now();
-    let paths = list_sweeps(input)?;
+    let paths = SweepSource::open(input, &cfg.bag)?;
     let prior_file = match poses {
         Some(p) => {
             let v = read_poses(p)?;
@@ -327,7 +328,7 @@ pub fn run_map3d_with(
     let laser = LaserModel::new(&laser_cfg, m.voxel_size, m.max_range);
     let mut proposal = Proposal::new(ProposalParams::from_config(m));
 
-    let first = read_sweep(&paths[0])?;
+    let first = paths.read(0)?;
     let scan0 = sweep_to_scan(&first.points, m);
     let initial = match (&prior_file, first.prior) {
         (Some(v), _) => v[0].pose,
@@ -364,8 +365,8 @@ pub fn run_map3d_with(
     bar.inc(1);
     let debug = std::env::var_os("DPSLAM_DEBUG").is_some();
 
-    for (i, path) in paths.iter().enumerate().skip(1) {
-        let sweep = read_sweep(path)?;
+    for i in 1..paths.len() {
+        let sweep = paths.read(i)?;
         let scan = sweep_to_scan(&sweep.points, m);
         points_per_sweep.push(sweep.points.len());
         beams_per_sweep.push(scan.beams.len());
@@ -460,10 +461,12 @@ pub fn run_map3d_with(
         if !Pose::<3>::is_finite(&st.pose) {
             return Err(Error::Invalid(format!(
                 "non-finite pose at sweep {i} ({})",
-                paths[i].display()
+                paths.describe(i)
             )));
         }
-        let t = prior_file.as_ref().map_or(i as f64, |v| v[i].t);
+        let t = prior_file
+            .as_ref()
+            .map_or(paths.stamp(i).unwrap_or(i as f64), |v| v[i].t);
         rows.push((t, Pose::<3>::to_tum(&st.pose)));
     }
     let voxels = occupied_voxels(&filter, m.occupied_density);
@@ -533,11 +536,15 @@ pub fn run_map3d_with(
 
 /// Re-reads the sweeps and registers their points with `poses` (one per
 /// sweep), keeping the first point per `points_voxel` voxel in the map frame.
-fn registered_points(paths: &[PathBuf], poses: &[Pose3], m: &Map3dConfig) -> Result<Vec<[f32; 3]>> {
+fn registered_points(
+    paths: &SweepSource,
+    poses: &[Pose3],
+    m: &Map3dConfig,
+) -> Result<Vec<[f32; 3]>> {
     let mut seen: FxHashMap<[i32; 3], ()> = FxHashMap::default();
     let mut out = Vec::new();
-    for (path, pose) in paths.iter().zip(poses) {
-        let sweep = read_sweep(path)?;
+    for (i, pose) in poses.iter().enumerate() {
+        let sweep = paths.read(i)?;
         for p in &sweep.points {
             let v = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
             let r = v.norm();
