@@ -115,7 +115,7 @@ fn iteration(c: &mut Criterion) {
                     }
                     let s = &log.steps[i];
                     let t = Instant::now();
-                    black_box(filter.step(&s.delta, &s.scan, s.index));
+                    black_box(filter.step(&s.input()));
                     total += t.elapsed();
                     i += 1;
                 }

@@ -503,13 +503,66 @@ impl Config {
             ],
             false,
         )?;
-        Ok(())
+        validate_map3d(&self.map3d)
     }
 
     /// Cell size in metres.
     pub fn cell_size(&self) -> f64 {
         1.0 / self.map.cells_per_metre
     }
+}
+
+/// Checks the 3-D settings (part of [`Config::validate`]).
+fn validate_map3d(m: &Map3dConfig) -> Result<()> {
+    let bad = |s: &str| Err(Error::Config(format!("map3d.{s}")));
+    let pos = |v: f64| v.is_finite() && v > 0.0;
+    let nonneg = |v: f64| v.is_finite() && v >= 0.0;
+    if !pos(m.voxel_size) {
+        return bad("voxel_size must be positive");
+    }
+    if m.max_beams == 0 {
+        return bad("max_beams must be at least 1");
+    }
+    if !pos(m.max_range) || !nonneg(m.min_range) || m.min_range >= m.max_range {
+        return bad("max_range must be positive and above min_range ≥ 0");
+    }
+    if !pos(m.beam_voxel)
+        || !pos(m.variance)
+        || !pos(m.icp_voxel)
+        || !pos(m.icp_max_distance)
+        || !pos(m.points_voxel)
+    {
+        return bad(
+            "beam_voxel, variance, icp_voxel, icp_max_distance and points_voxel must be positive",
+        );
+    }
+    if !nonneg(m.occupied_density) {
+        return bad("occupied_density must be ≥ 0");
+    }
+    if !nonneg(m.icp_covariance_scale) {
+        return bad("icp_covariance_scale must be ≥ 0");
+    }
+    let noise = [
+        m.trans_std_per_m,
+        m.trans_std_per_rad,
+        m.min_trans_std,
+        m.rot_std_per_m,
+        m.rot_std_per_rad,
+        m.min_rot_std,
+    ];
+    if !noise.iter().all(|&v| nonneg(v)) {
+        return bad("motion noise parameters must be ≥ 0");
+    }
+    if m.local_map_sweeps == 0
+        || m.icp_levels == 0
+        || m.icp_iterations == 0
+        || m.icp_max_points == 0
+    {
+        return bad(
+            "local_map_sweeps, icp_levels, icp_iterations and icp_max_points must be at least 1",
+        );
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -537,5 +590,13 @@ mod tests {
         std::fs::write(&p, "[filter]\nparticles = 0\n").unwrap();
         let e = Config::from_toml_file(&p).unwrap_err().to_string();
         assert!(e.contains("particles"), "{e}");
+    }
+
+    #[test]
+    fn bad_3d_settings_are_config_errors() {
+        let mut c = Config::default();
+        c.map3d.voxel_size = 0.0;
+        assert!(c.validate().unwrap_err().to_string().contains("voxel_size"));
+        assert!(Config::default().validate().is_ok());
     }
 }

@@ -22,6 +22,7 @@ use crate::dpmap::{DpMap, storage_order};
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
 use crate::motion_model::MotionModel;
+use crate::proposal::Proposal;
 use crate::raycast::CellKey;
 use crate::scan::Scan;
 use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer, map_in_preorder};
@@ -67,6 +68,32 @@ pub struct Weights {
     pub after_quick: usize,
     /// Samples left after the full passes.
     pub after_full: usize,
+}
+
+/// Everything one filter step consumes.
+#[derive(Debug, Clone)]
+pub struct StepInput<'a, const D: usize, P: Pose<D>> {
+    /// Odometry motion since the last processed scan, in the previous robot
+    /// frame (the motion model's mean; identity without odometry).
+    pub odometry: P,
+    /// Where the samples come from.
+    pub proposal: Proposal<P>,
+    /// The scan taken at the new pose.
+    pub scan: &'a Scan<D, P>,
+    /// Index of the scan in the input (0-based), recorded in the tree.
+    pub index: u32,
+}
+
+impl<'a, const D: usize, P: Pose<D>> StepInput<'a, D, P> {
+    /// A step whose samples come from the motion model around `odometry`.
+    pub fn motion(odometry: P, scan: &'a Scan<D, P>, index: u32) -> Self {
+        Self {
+            odometry,
+            proposal: Proposal::Motion,
+            scan,
+            index,
+        }
+    }
 }
 
 /// What one step did, for logs and run statistics.
@@ -256,14 +283,14 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         self.scorer.as_ref()
     }
 
-    /// One filter step for the odometry motion `delta` (previous robot frame)
-    /// and the scan taken at the new pose (input index `scan_index`).
-    pub fn step(&mut self, delta: &P, scan: &Scan<D, P>, scan_index: u32) -> StepStats {
+    /// One filter step: predict → weigh → resample → update → prune.
+    pub fn step(&mut self, input: &StepInput<'_, D, P>) -> StepStats {
         self.steps += 1;
-        let samples = self.predict(delta);
-        let weights = self.weigh(&samples, scan);
+        let samples = self.predict(&input.odometry, &input.proposal);
+        let weights = self.weigh(&samples, input.scan);
         let chosen = self.resample(&weights.scores);
-        let distinct_parents = self.update(&samples, &weights.scores, &chosen, scan, scan_index);
+        let distinct_parents =
+            self.update(&samples, &weights.scores, &chosen, input.scan, input.index);
         self.prune();
         StepStats {
             samples: samples.len(),
@@ -280,12 +307,14 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         }
     }
 
-    /// Predict: `samples_per_particle` poses per particle from the motion
-    /// model, each particle on its own RNG stream for this step.
-    pub fn predict(&self, delta: &P) -> Vec<Sample<P>> {
+    /// Predict: `samples_per_particle` poses per particle from `proposal`
+    /// (for the odometry motion `odometry`, previous robot frame), each
+    /// particle on its own RNG stream for this step.
+    pub fn predict(&self, odometry: &P, proposal: &Proposal<P>) -> Vec<Sample<P>> {
         let k = self.cfg.samples_per_particle;
         let step = self.steps;
         let seed = self.seed;
+        let motion = self.motion.as_ref();
         self.particles
             .par_iter()
             .enumerate()
@@ -293,7 +322,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
                 let mut rng = stream(seed, step, i as u64);
                 (0..k)
                     .map(|_| Sample {
-                        pose: self.motion.sample(&p.pose, delta, &mut rng),
+                        pose: proposal.sample(motion, &p.pose, odometry, &mut rng),
                         parent: i,
                     })
                     .collect::<Vec<_>>()

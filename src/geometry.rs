@@ -35,6 +35,15 @@ pub trait Pose<const D: usize>: Copy + Send + Sync + Debug + PartialEq + 'static
     fn from_tum(v: [f64; 7]) -> Self;
     /// Rotation angle of the transform, radians in [0, π].
     fn rotation_angle(&self) -> f64;
+    /// Degrees of freedom of the pose: 3 in 2-D (`x, y, θ`), 6 in 3-D.
+    const DOF: usize;
+    /// The pose reached from `self` by the motion `delta` (in the frame of
+    /// `self`) and then the body-frame perturbation `xi` (in the frame of the
+    /// moved pose): `self · delta · ε(xi)`, where `ε` translates by the
+    /// translational part of `xi` (m) and rotates by its rotational part
+    /// (rad). 2-D: `xi = [x, y, θ]`; 3-D: `xi = [ωx, ωy, ωz, tx, ty, tz]`
+    /// (ω a small-angle axis vector). `xi.len()` is [`Pose::DOF`].
+    fn perturbed(&self, delta: &Self, xi: &[f64]) -> Self;
     /// All components are finite.
     fn is_finite(&self) -> bool {
         self.to_tum().iter().all(|v| v.is_finite())
@@ -103,6 +112,10 @@ impl Pose<2> for Pose2 {
     fn rotation_angle(&self) -> f64 {
         self.rotation.angle().abs()
     }
+    const DOF: usize = 3;
+    fn perturbed(&self, delta: &Self, xi: &[f64]) -> Self {
+        self * delta * pose2(xi[0], xi[1], xi[2])
+    }
 }
 
 impl Pose<3> for Pose3 {
@@ -147,6 +160,14 @@ impl Pose<3> for Pose3 {
     }
     fn rotation_angle(&self) -> f64 {
         self.rotation.angle()
+    }
+    const DOF: usize = 6;
+    fn perturbed(&self, delta: &Self, xi: &[f64]) -> Self {
+        let step = Isometry3::from_parts(
+            Translation3::new(xi[3], xi[4], xi[5]),
+            UnitQuaternion::from_scaled_axis(Vector3::new(xi[0], xi[1], xi[2])),
+        );
+        (self * delta).compose(&step)
     }
 }
 

@@ -25,7 +25,8 @@ use crate::ancestry::{AncestryTree, NodeId, Numbering};
 use crate::config::{Config, FilterConfig, HierarchyConfig};
 use crate::dpmap::DpMap;
 use crate::filter::{
-    MapUpdate, Particle, ParticleFilter, Stamp, StepStats, draw, grow, offspring, prune, stream,
+    MapUpdate, Particle, ParticleFilter, Stamp, StepInput, StepStats, draw, grow, offspring, prune,
+    stream,
 };
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
@@ -286,12 +287,11 @@ impl<const D: usize, P: Pose<D>> HierarchicalFilter<D, P> {
         }
     }
 
-    /// One low-level step for the odometry motion `delta` and the scan at
-    /// input index `scan_index`; closes the window (a high-level step) when
-    /// it is full.
-    pub fn step(&mut self, delta: &P, scan: &Scan<D, P>, scan_index: u32) -> StepStats {
-        let stats = self.low.step(delta, scan, scan_index);
-        self.window.push((scan_index, scan.clone()));
+    /// One low-level step; closes the window (a high-level step) when it
+    /// is full.
+    pub fn step(&mut self, input: &StepInput<'_, D, P>) -> StepStats {
+        let stats = self.low.step(input);
+        self.window.push((input.index, input.scan.clone()));
         if self.window.len() > self.high.cfg.window {
             self.close_window();
         }
@@ -359,6 +359,14 @@ impl<const D: usize, P: Pose<D>> HierarchicalFilter<D, P> {
             pose: hp.pose.compose(&s.pose),
         }));
         out
+    }
+
+    /// The best pose now (map frame): the low level's best particle, placed
+    /// by the best high-level particle.
+    pub fn best_pose(&self) -> P {
+        let hp = &self.high.particles[self.high.best];
+        hp.pose
+            .compose(&self.low.particles()[self.low.best_index()].pose)
     }
 
     /// The global (high-level) map.

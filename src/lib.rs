@@ -24,6 +24,7 @@ pub mod geometry;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 pub mod hierarchy;
+pub mod icp;
 pub mod io;
 pub mod laser_model;
 pub mod motion_learning;
@@ -34,5 +35,6 @@ pub mod raycast;
 pub mod scan;
 pub mod scorer;
 pub mod sim;
+pub mod slam;
 
 pub use error::{Error, Result};

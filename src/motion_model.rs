@@ -251,25 +251,25 @@ mod tests_6d {
     }
 
     #[test]
-    fn aligned_model_samples_with_the_set_covariance_or_falls_back() {
-        use nalgebra::{Matrix6, Vector6};
+    fn a_matched_proposal_samples_with_its_covariance_or_falls_back() {
+        use crate::proposal::Proposal;
+        use nalgebra::{DMatrix, Vector6};
         let base = Gaussian6dModel::from_config(&crate::config::Map3dConfig::default());
-        let noise = ProposalNoise::default();
-        let model = AlignedGaussian6dModel {
-            base: base.clone(),
-            noise: noise.clone(),
-        };
         let prev = Pose3::new(Vector3::new(1.0, 2.0, 0.5), Vector3::new(0.1, 0.0, 0.4));
         let delta = Pose3::new(Vector3::new(1.5, 0.2, 0.0), Vector3::new(0.0, 0.0, 0.05));
         let expect = prev * delta;
         let mut rng = Pcg64::seed_from_u64(3);
         // Body-frame stds [ω, t]: 1 mrad, 2 mrad, 3 mrad, 1 mm, 2 mm, 3 mm.
         let sd = Vector6::new(1e-3, 2e-3, 3e-3, 1e-3, 2e-3, 3e-3);
-        noise.set(Some(&Matrix6::from_diagonal(&sd.component_mul(&sd))));
+        let cov = DMatrix::from_diagonal(&nalgebra::DVector::from_column_slice(
+            sd.component_mul(&sd).as_slice(),
+        ));
+        let matched = Proposal::matched(delta, cov).unwrap();
         let n = 20000;
         let mut sq = Vector6::<f64>::zeros();
         for _ in 0..n {
-            let e = expect.inverse() * model.sample(&prev, &delta, &mut rng);
+            let p = matched.sample::<3>(&base, &prev, &Pose3::identity(), &mut rng);
+            let e = expect.inverse() * p;
             let w = e.rotation.scaled_axis();
             let t = e.translation.vector;
             let xi = Vector6::new(w.x, w.y, w.z, t.x, t.y, t.z);
@@ -283,12 +283,11 @@ mod tests_6d {
                 sd[k]
             );
         }
-        // Cleared: the plain model, sample for sample.
-        noise.set(None);
+        // The motion proposal: the plain model, sample for sample.
         let mut a = Pcg64::seed_from_u64(4);
         let mut b = Pcg64::seed_from_u64(4);
         assert_eq!(
-            model.sample(&prev, &delta, &mut a),
+            Proposal::Motion.sample::<3>(&base, &prev, &delta, &mut a),
             base.sample(&prev, &delta, &mut b)
         );
     }
@@ -298,64 +297,5 @@ mod tests_6d {
         let model = Gaussian6dModel::from_config(&crate::config::Map3dConfig::default());
         let (st, sr) = model.stds(&Pose3::identity());
         assert_eq!((st, sr), (0.005, 0.002));
-    }
-}
-
-/// The 3-D proposal's per-step noise, shared between the pipeline (which
-/// sets it after each alignment) and an [`AlignedGaussian6dModel`] inside the
-/// filter (which samples with it). Holds the lower Cholesky factor of a
-/// body-frame covariance over `[ω (rad), t (m)]`; `None` means "no
-/// alignment this step: use the plain motion model".
-#[derive(Debug, Clone, Default)]
-pub struct ProposalNoise(std::sync::Arc<std::sync::RwLock<Option<nalgebra::Matrix6<f64>>>>);
-
-impl ProposalNoise {
-    /// Sets the covariance for the next step (body frame of the new pose,
-    /// `[ω rad, t m]`); `None`, or a matrix that is not positive definite,
-    /// falls back to the plain motion model.
-    pub fn set(&self, covariance: Option<&nalgebra::Matrix6<f64>>) {
-        let factor = covariance.and_then(|c| c.cholesky()).map(|c| c.l());
-        *self.0.write().unwrap_or_else(|e| e.into_inner()) = factor;
-    }
-
-    /// The current Cholesky factor, if any.
-    pub fn factor(&self) -> Option<nalgebra::Matrix6<f64>> {
-        *self.0.read().unwrap_or_else(|e| e.into_inner())
-    }
-}
-
-/// The 6-DoF motion model of the aligned 3-D proposal (the "improved
-/// proposal" of Grisetti et al., IEEE T-RO 2007, in 6-DoF): when the sweep
-/// was aligned, samples are `prev · delta · exp(ξ)` with ξ drawn from the
-/// Gaussian whose covariance the pipeline put in [`ProposalNoise`] — the
-/// product of the scan matcher's Gaussian and the motion model's, see
-/// [`Gaussian6dModel::fuse`]. Without an alignment it is the plain
-/// [`Gaussian6dModel`].
-#[derive(Debug, Clone)]
-pub struct AlignedGaussian6dModel {
-    /// The motion model used without an alignment (and fused with one).
-    pub base: Gaussian6dModel,
-    /// The per-step noise set by the pipeline.
-    pub noise: ProposalNoise,
-}
-
-impl MotionModel<3, crate::geometry::Pose3> for AlignedGaussian6dModel {
-    fn sample(
-        &self,
-        prev: &crate::geometry::Pose3,
-        delta: &crate::geometry::Pose3,
-        rng: &mut Pcg64,
-    ) -> crate::geometry::Pose3 {
-        use nalgebra::{Translation3, UnitQuaternion, Vector3, Vector6};
-        let Some(l) = self.noise.factor() else {
-            return self.base.sample(prev, delta, rng);
-        };
-        let mut n = || -> f64 { StandardNormal.sample(rng) };
-        let xi = l * Vector6::new(n(), n(), n(), n(), n(), n());
-        let step = crate::geometry::Pose3::from_parts(
-            Translation3::from(Vector3::new(xi[3], xi[4], xi[5])),
-            UnitQuaternion::from_scaled_axis(Vector3::new(xi[0], xi[1], xi[2])),
-        );
-        (prev * delta).compose(&step)
     }
 }

@@ -1,610 +1,125 @@
-//! The 6-DoF proposal of 3-D DP-SLAM (dissertation ch. 11): before the filter
-//! samples, each new sweep is aligned to the map built so far, so that the
-//! particles are drawn around a pose that explains the sweep instead of
-//! around the raw prior (odometry, pose file or constant velocity).
+//! The proposal: the distribution each particle draws its samples from in
+//! one filter step, an explicit input of [`crate::filter::ParticleFilter::step`].
 //!
-//! Alignment is multi-resolution point-to-plane ICP against a [`LocalMap`]:
-//! the down-sampled points of the best particle's most recent sweeps, put in
-//! the map frame with that particle's poses. Each level has a voxel size
-//! (centroid down-sampling of map and sweep alike) and a correspondence
-//! radius; a voxel hash of that radius finds neighbours (the 27 cells around
-//! a point), and the map points' normals come from the covariance of their
-//! neighbours. Coarse levels have large radii so that motion the prior does
-//! not explain (1 m and 10° and more) is pulled in; fine levels refine it.
-//!
-//! Everything here is deterministic: points are processed in input order and
-//! per-point terms are computed in parallel but summed in order, so the
-//! result does not depend on the thread count. Memory is bounded by the
-//! window of sweeps, not by the length of the run.
+//! DP-SLAM's release draws from the motion model around the odometry motion
+//! ([`Proposal::Motion`]). A scan matcher can do better (Grisetti et al.,
+//! IEEE T-RO 2007, "improved proposal"): align the scan first and draw from
+//! a Gaussian around the aligned pose, whose covariance is the match's fused
+//! with the motion model's ([`Proposal::Matched`]; the 3-D ICP of
+//! [`crate::icp`] makes one). The same type serves 2-D and 3-D: the
+//! perturbation lives in the body frame of the new pose, with
+//! [`Pose::DOF`] components ([`Pose::perturbed`]).
 
-use crate::config::Map3dConfig;
-use crate::geometry::Pose3;
-use nalgebra::{Matrix3, Matrix6, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector6};
-use rayon::prelude::*;
-use rustc_hash::FxHashMap;
-use std::collections::VecDeque;
+use crate::geometry::Pose;
+use crate::motion_model::MotionModel;
+use nalgebra::{DMatrix, DVector};
+use rand_distr::{Distribution, StandardNormal};
+use rand_pcg::Pcg64;
 
-/// Fewer correspondences than this and an ICP level is not trusted.
-const MIN_CORRESPONDENCES: usize = 30;
-/// A neighbourhood is a plane when its smallest covariance eigenvalue is at
-/// most this fraction of the sum (flat enough for a point-to-plane residual).
-const PLANARITY: f64 = 0.08;
-/// ... and its middle eigenvalue at least this fraction (not a line).
-const LINEARITY: f64 = 0.05;
-/// Fewest neighbours for a normal.
-const MIN_NORMAL_NEIGHBOURS: usize = 5;
-/// ICP stops a level when the update is below this (rad and m).
-const CONVERGED: f64 = 1e-5;
-/// Cauchy scale in units of the residual std for 95 % asymptotic efficiency
-/// under Gaussian noise (Holland & Welsch 1977).
-const CAUCHY_95: f64 = 2.385;
-/// Smallest Cauchy scale, m: about a lidar's range noise, so that exact
-/// synthetic data (residual spread → 0) keeps a usable weight.
-const MIN_SCALE: f64 = 0.01;
-
-/// Parameters of the proposal, from [`Map3dConfig`].
+/// Where the samples of one filter step come from.
 #[derive(Debug, Clone, PartialEq)]
-pub struct ProposalParams {
-    /// Sweeps kept in the local map.
-    pub window: usize,
-    /// ICP levels, coarse to fine: `(voxel m, correspondence radius m)`.
-    pub levels: Vec<(f64, f64)>,
-    /// Gauss-Newton iterations per level, at most.
-    pub iterations: usize,
-    /// Source points per level, at most.
-    pub max_points: usize,
+pub enum Proposal<P> {
+    /// The motion model around the step's odometry motion (the release's
+    /// proposal).
+    Motion,
+    /// A scan match for the whole particle set, expressed as a motion: each
+    /// particle at pose `p` draws `p · delta · ε(ξ)` ([`Pose::perturbed`]),
+    /// with ξ ~ N(0, L Lᵀ) in the body frame of the new pose.
+    Matched {
+        /// The matched motion (previous robot frame).
+        delta: P,
+        /// Lower Cholesky factor L of the body-frame covariance
+        /// ([`Pose::DOF`] × [`Pose::DOF`]; 2-D `[x m, y m, θ rad]`, 3-D
+        /// `[ω rad, t m]`).
+        factor: DMatrix<f64>,
+    },
 }
 
-impl ProposalParams {
-    /// The parameters of `cfg`: `icp_levels` levels whose voxel doubles from
-    /// `icp_voxel` (finest) and whose radius halves from `icp_max_distance`
-    /// (coarsest); a radius never falls below 2.5 voxels, so normals have
-    /// neighbours.
-    pub fn from_config(cfg: &Map3dConfig) -> Self {
-        let n = cfg.icp_levels.max(1);
-        let levels = (0..n)
-            .map(|i| {
-                let coarse = (n - 1 - i) as i32;
-                let voxel = cfg.icp_voxel * 2f64.powi(coarse);
-                let radius = (cfg.icp_max_distance / 2f64.powi(i as i32)).max(2.5 * voxel);
-                (voxel, radius)
-            })
-            .collect();
-        Self {
-            window: cfg.local_map_sweeps.max(1),
-            levels,
-            iterations: cfg.icp_iterations.max(1),
-            max_points: cfg.icp_max_points.max(MIN_CORRESPONDENCES),
-        }
-    }
-}
-
-/// The voxel of edge `size` containing `p`.
-#[inline]
-fn voxel_of(p: &Vector3<f64>, size: f64) -> [i32; 3] {
-    [
-        (p.x / size).floor() as i32,
-        (p.y / size).floor() as i32,
-        (p.z / size).floor() as i32,
-    ]
-}
-
-/// Centroid down-sampling: one point per voxel of edge `size` (m), the mean
-/// of the points in it, in the order the voxels are first seen.
-pub fn voxel_downsample(
-    points: impl IntoIterator<Item = Vector3<f64>>,
-    size: f64,
-) -> Vec<Vector3<f64>> {
-    let mut slot: FxHashMap<[i32; 3], usize> = FxHashMap::default();
-    let mut acc: Vec<(Vector3<f64>, u32)> = Vec::new();
-    for p in points {
-        let k = voxel_of(&p, size);
-        let i = *slot.entry(k).or_insert_with(|| {
-            acc.push((Vector3::zeros(), 0));
-            acc.len() - 1
-        });
-        acc[i].0 += p;
-        acc[i].1 += 1;
-    }
-    acc.into_iter().map(|(s, n)| s / n as f64).collect()
-}
-
-/// Keeps at most `max` points with an even stride (deterministic).
-fn thin<T: Copy>(v: &[T], max: usize) -> Vec<T> {
-    let stride = v.len().div_ceil(max.max(1)).max(1);
-    v.iter().step_by(stride).copied().collect()
-}
-
-/// One resolution of the local map: points, their normals (where the
-/// neighbourhood is planar) and a voxel hash of cell = correspondence radius.
-#[derive(Debug, Clone)]
-struct Level {
-    voxel: f64,
-    radius: f64,
-    points: Vec<Vector3<f64>>,
-    normals: Vec<Option<Vector3<f64>>>,
-    grid: FxHashMap<[i32; 3], Vec<u32>>,
-}
-
-impl Level {
-    fn build(points: Vec<Vector3<f64>>, voxel: f64, radius: f64) -> Self {
-        let mut grid: FxHashMap<[i32; 3], Vec<u32>> = FxHashMap::default();
-        for (i, p) in points.iter().enumerate() {
-            grid.entry(voxel_of(p, radius)).or_default().push(i as u32);
-        }
-        let mut level = Self {
-            voxel,
-            radius,
-            points,
-            normals: Vec::new(),
-            grid,
-        };
-        // Normals from neighbours within half the radius: a local plane fit
-        // that stays local at coarse levels too.
-        let r_normal = (0.5 * radius).max(1.5 * voxel);
-        level.normals = level
-            .points
-            .par_iter()
-            .map(|p| level.normal_at(p, r_normal))
-            .collect();
-        level
+impl<P> Proposal<P> {
+    /// A matched proposal with body-frame covariance `covariance`, or `None`
+    /// when it is not positive definite (the caller falls back to
+    /// [`Proposal::Motion`]).
+    pub fn matched(delta: P, covariance: DMatrix<f64>) -> Option<Self> {
+        let factor = covariance.cholesky()?.l();
+        Some(Self::Matched { delta, factor })
     }
 
-    /// Calls `f` with the index of every point in the 27 cells around `p`.
-    #[inline]
-    fn for_near(&self, p: &Vector3<f64>, mut f: impl FnMut(usize)) {
-        let c = voxel_of(p, self.radius);
-        for dx in -1..=1 {
-            for dy in -1..=1 {
-                for dz in -1..=1 {
-                    if let Some(list) = self.grid.get(&[c[0] + dx, c[1] + dy, c[2] + dz]) {
-                        for &i in list {
-                            f(i as usize);
-                        }
-                    }
-                }
-            }
-        }
+    /// A matched proposal from an already computed lower Cholesky factor.
+    pub fn from_factor(delta: P, factor: DMatrix<f64>) -> Self {
+        Self::Matched { delta, factor }
     }
 
-    fn normal_at(&self, p: &Vector3<f64>, r: f64) -> Option<Vector3<f64>> {
-        let r2 = r * r;
-        let mut n = 0usize;
-        let mut sum = Vector3::zeros();
-        let mut outer = Matrix3::zeros();
-        self.for_near(p, |i| {
-            let q = self.points[i];
-            if (q - p).norm_squared() <= r2 {
-                n += 1;
-                sum += q;
-                outer += q * q.transpose();
-            }
-        });
-        if n < MIN_NORMAL_NEIGHBOURS {
-            return None;
-        }
-        let mean = sum / n as f64;
-        let cov = outer / n as f64 - mean * mean.transpose();
-        let eig = SymmetricEigen::new(cov);
-        let mut order = [0usize, 1, 2];
-        order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
-        let l = order.map(|i| eig.eigenvalues[i].max(0.0));
-        let total = l[0] + l[1] + l[2];
-        // Flat (small l0) but not a line: one lidar ring alone has two small
-        // eigenvalues and no defined normal.
-        if total <= 0.0 || l[0] > PLANARITY * total || l[1] < LINEARITY * total {
-            return None;
-        }
-        let imin = order[0];
-        Some(eig.eigenvectors.column(imin).into_owned())
-    }
-
-    /// The nearest map point to `p` within the radius, if any.
-    fn nearest(&self, p: &Vector3<f64>) -> Option<usize> {
-        let mut best = (self.radius * self.radius, None);
-        self.for_near(p, |i| {
-            let d = (self.points[i] - p).norm_squared();
-            if d < best.0 {
-                best = (d, Some(i));
-            }
-        });
-        best.1
-    }
-}
-
-/// The map the proposal aligns sweeps to: recent sweeps of one particle at
-/// every ICP resolution, in the map frame.
-#[derive(Debug, Clone)]
-pub struct LocalMap {
-    levels: Vec<Level>,
-}
-
-impl LocalMap {
-    /// Builds the map from `(pose, points)` pairs: sensor-frame points (m)
-    /// and the pose mapping them into the map frame.
-    pub fn build(clouds: &[(Pose3, &[Vector3<f64>])], params: &ProposalParams) -> Self {
-        let levels = params
-            .levels
-            .iter()
-            .map(|&(voxel, radius)| {
-                let pts = voxel_downsample(
-                    clouds
-                        .iter()
-                        .flat_map(|(pose, pts)| {
-                            pts.iter().map(move |p| pose * nalgebra::Point3::from(*p))
-                        })
-                        .map(|p| p.coords),
-                    voxel,
-                );
-                Level::build(pts, voxel, radius)
-            })
-            .collect();
-        Self { levels }
-    }
-
-    /// Points at the finest level.
-    pub fn len(&self) -> usize {
-        self.levels.last().map_or(0, |l| l.points.len())
-    }
-
-    /// The map has no points.
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-}
-
-/// The result of aligning one sweep.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Alignment {
-    /// Aligned sensor pose in the map frame.
-    pub pose: Pose3,
-    /// Correspondences at the finest level in the last iteration.
-    pub inliers: usize,
-    /// Root mean square point-to-plane residual of those, m.
-    pub rms: f64,
-    /// Gauss-Newton iterations over all levels.
-    pub iterations: usize,
-    /// Covariance of the aligned pose as a right (body-frame) perturbation
-    /// `pose · exp([ω, t])`, ω in rad and t in m, sensor frame.
-    pub covariance: Matrix6<f64>,
-}
-
-/// `exp` of a twist `[ω, t]` applied on the left: rotation by the small-angle
-/// vector ω (rad) and translation t (m), both in the map frame.
-fn left_update(pose: &Pose3, xi: &Vector6<f64>) -> Pose3 {
-    let w = Vector3::new(xi[0], xi[1], xi[2]);
-    let t = Vector3::new(xi[3], xi[4], xi[5]);
-    let step = Pose3::from_parts(Translation3::from(t), UnitQuaternion::from_scaled_axis(w));
-    step * pose
-}
-
-/// The matrix taking a left (map-frame) twist `[ω, t]` at `pose` to the
-/// equal right (body-frame) twist: `exp(ξ)·T = T·exp(A·ξ)` to first order,
-/// `A = [[Rᵀ, 0], [−Rᵀ[p]×, Rᵀ]]` for `T = (R, p)`.
-fn body_adjoint(pose: &Pose3) -> Matrix6<f64> {
-    let rt = pose.rotation.to_rotation_matrix().into_inner().transpose();
-    let p = pose.translation.vector;
-    let mut a = Matrix6::zeros();
-    a.fixed_view_mut::<3, 3>(0, 0).copy_from(&rt);
-    a.fixed_view_mut::<3, 3>(3, 3).copy_from(&rt);
-    a.fixed_view_mut::<3, 3>(3, 0)
-        .copy_from(&(-rt * p.cross_matrix()));
-    a
-}
-
-/// Aligns `source` (sensor-frame points, m) to `map` starting from `initial`
-/// (sensor pose in the map frame). Returns `None` when a level finds too few
-/// correspondences to be trusted (the caller keeps its prior then).
-pub fn align(
-    map: &LocalMap,
-    source: &[Vector3<f64>],
-    initial: &Pose3,
-    params: &ProposalParams,
-) -> Option<Alignment> {
-    let mut pose = *initial;
-    let mut iterations = 0;
-    let mut last = (0usize, 0.0f64);
-    let mut info = Matrix6::<f64>::zeros();
-    for level in &map.levels {
-        let src = thin(
-            &voxel_downsample(source.iter().copied(), level.voxel),
-            params.max_points,
-        );
-        let mut sigma: Option<f64> = None;
-        for it in 0..params.iterations {
-            iterations += 1;
-            // Residual scale of the robust (Cauchy) weight: the level's
-            // radius, annealed, at the first iterations; from the second on
-            // at most the spread of the last residuals, 2.385·σ̂ with σ̂ =
-            // 1.4826·median|r| (the Cauchy constant of 95 % efficiency under
-            // Gaussian noise, and a spread that outliers do not inflate).
-            // A fixed floor such as the voxel size gives mis-matched points
-            // (edges, clutter) near-full weight once the residuals of the
-            // true matches are centimetres, and biases the pose by as much.
-            let anneal = level.radius / (1.0 + it as f64);
-            let scale = match sigma {
-                Some(s) => anneal.min((CAUCHY_95 * s).max(MIN_SCALE)),
-                None => anneal,
-            };
-            let terms: Vec<Option<(Vector6<f64>, f64, f64)>> = src
-                .par_iter()
-                .map(|p| {
-                    let q = pose * nalgebra::Point3::from(*p);
-                    let q = q.coords;
-                    let j = level.nearest(&q)?;
-                    let n = level.normals[j]?;
-                    let r = n.dot(&(q - level.points[j]));
-                    let jac = q.cross(&n);
-                    let row = Vector6::new(jac.x, jac.y, jac.z, n.x, n.y, n.z);
-                    let w = 1.0 / (1.0 + (r / scale) * (r / scale));
-                    Some((row, r, w))
-                })
-                .collect();
-            let mut h = Matrix6::<f64>::zeros();
-            let mut g = Vector6::<f64>::zeros();
-            let mut count = 0usize;
-            let mut sq = 0.0;
-            let mut abs_r: Vec<f64> = Vec::with_capacity(src.len());
-            for (row, r, w) in terms.into_iter().flatten() {
-                abs_r.push(r.abs());
-                h += row * row.transpose() * w;
-                g += row * (w * r);
-                count += 1;
-                sq += r * r;
-            }
-            if count < MIN_CORRESPONDENCES {
-                return None;
-            }
-            last = (count, (sq / count as f64).sqrt());
-            let mid = abs_r.len() / 2;
-            let med = *abs_r.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
-            let s = (1.4826 * med).max(MIN_SCALE / CAUCHY_95);
-            sigma = Some(s);
-            // Information of the pose: the Gauss-Newton normal matrix over
-            // the residual variance (before damping).
-            info = h / (s * s);
-            // Light damping keeps directions without planes (a corridor's
-            // axis) from jumping.
-            let damping = 1e-6 * h.trace().max(1e-12);
-            for i in 0..6 {
-                h[(i, i)] += damping;
-            }
-            let xi = h.cholesky()?.solve(&(-g));
-            pose = left_update(&pose, &xi);
-            if xi.norm() < CONVERGED {
-                break;
-            }
-        }
-    }
-    // A weak prior (1 m, 1 rad per axis) keeps the inverse finite where the
-    // sweep leaves the pose free (a lone plane, a corridor's axis): there the
-    // covariance is ~1 and fusion leaves the motion noise in charge.
-    let cov_map = (info + Matrix6::identity())
-        .try_inverse()
-        .unwrap_or_else(Matrix6::identity);
-    let a = body_adjoint(&pose);
-    Some(Alignment {
-        pose,
-        inliers: last.0,
-        rms: last.1,
-        iterations,
-        covariance: a * cov_map * a.transpose(),
-    })
-}
-
-/// The proposal's memory: the down-sampled points of the last `window`
-/// sweeps (sensor frame), keyed by their input index.
-#[derive(Debug, Clone)]
-pub struct Proposal {
-    params: ProposalParams,
-    recent: VecDeque<(u32, Vec<Vector3<f64>>)>,
-}
-
-impl Proposal {
-    /// An empty proposal.
-    pub fn new(params: ProposalParams) -> Self {
-        Self {
-            params,
-            recent: VecDeque::new(),
-        }
-    }
-
-    /// The parameters.
-    pub fn params(&self) -> &ProposalParams {
-        &self.params
-    }
-
-    /// Down-samples `points` (sensor frame, m) to the finest ICP voxel: the
-    /// form in which sweeps are aligned and kept.
-    pub fn prepare(&self, points: &[[f32; 3]]) -> Vec<Vector3<f64>> {
-        let finest = self.params.levels.last().map_or(0.2, |l| l.0);
-        voxel_downsample(
-            points
-                .iter()
-                .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)),
-            finest,
-        )
-    }
-
-    /// Remembers sweep `index` (prepared points) and forgets the oldest
-    /// beyond the window.
-    pub fn push(&mut self, index: u32, prepared: Vec<Vector3<f64>>) {
-        self.recent.push_back((index, prepared));
-        while self.recent.len() > self.params.window {
-            self.recent.pop_front();
-        }
-    }
-
-    /// Input indices of the remembered sweeps, oldest first.
-    pub fn indices(&self) -> impl Iterator<Item = u32> + '_ {
-        self.recent.iter().map(|r| r.0)
-    }
-
-    /// Aligns `prepared` (points of the new sweep) to the remembered sweeps,
-    /// each placed with `pose_of(index)` (`None`: left out), from `initial`.
-    pub fn align(
+    /// Draws the new pose of a particle at `prev` (map frame), for the
+    /// odometry motion `odometry` (previous robot frame), on `rng`.
+    pub fn sample<const D: usize>(
         &self,
-        prepared: &[Vector3<f64>],
-        initial: &Pose3,
-        pose_of: impl Fn(u32) -> Option<Pose3>,
-    ) -> Option<Alignment> {
-        let clouds: Vec<(Pose3, &[Vector3<f64>])> = self
-            .recent
-            .iter()
-            .filter_map(|(i, pts)| pose_of(*i).map(|p| (p, pts.as_slice())))
-            .collect();
-        if clouds.is_empty() {
-            return None;
+        motion: &dyn MotionModel<D, P>,
+        prev: &P,
+        odometry: &P,
+        rng: &mut Pcg64,
+    ) -> P
+    where
+        P: Pose<D>,
+    {
+        match self {
+            Proposal::Motion => motion.sample(prev, odometry, rng),
+            Proposal::Matched { delta, factor } => {
+                let n = DVector::from_fn(P::DOF, |_, _| StandardNormal.sample(&mut *rng));
+                let xi = factor * n;
+                prev.perturbed(delta, xi.as_slice())
+            }
         }
-        let map = LocalMap::build(&clouds, &self.params);
-        align(&map, prepared, initial, &self.params)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::Vector3;
+    use crate::geometry::{Pose2, pose2};
+    use crate::motion_model::Exact;
+    use rand::SeedableRng;
 
-    /// Points on the inside of a 12 × 9 × 3 m room with two pillars, seen from
-    /// `sensor` (map frame), in the sensor frame. Deterministic grid sampling.
-    fn room_points(sensor: &Pose3) -> Vec<Vector3<f64>> {
-        let mut pts = Vec::new();
-        let s = 0.1;
-        let (lx, ly, lz) = (12.0, 9.0, 3.0);
-        let mut add = |p: Vector3<f64>| pts.push(sensor.inverse() * nalgebra::Point3::from(p));
-        let steps = |a: f64| (0..=((a / s) as i32)).map(move |i| i as f64 * s);
-        for x in steps(lx) {
-            for y in steps(ly) {
-                add(Vector3::new(x - 6.0, y - 4.5, -1.0));
-            }
-            for z in steps(lz) {
-                add(Vector3::new(x - 6.0, -4.5, z - 1.0));
-                add(Vector3::new(x - 6.0, 4.5, z - 1.0));
-            }
-        }
-        for y in steps(ly) {
-            for z in steps(lz) {
-                add(Vector3::new(-6.0, y - 4.5, z - 1.0));
-                add(Vector3::new(6.0, y - 4.5, z - 1.0));
+    #[test]
+    fn matched_samples_spread_as_the_covariance_says_in_the_body_frame() {
+        // Heading +90°: body x is map y.
+        let prev = pose2(1.0, 2.0, std::f64::consts::FRAC_PI_2);
+        let delta = pose2(0.5, 0.0, 0.0);
+        let sd = [0.01, 0.04, 0.002];
+        let cov = DMatrix::from_diagonal(&DVector::from_iterator(3, sd.iter().map(|s| s * s)));
+        let prop = Proposal::matched(delta, cov).unwrap();
+        let mut rng = Pcg64::seed_from_u64(1);
+        let n = 20000;
+        let mut sq = [0.0; 3];
+        let mean = prev * delta;
+        for _ in 0..n {
+            let p: Pose2 = prop.sample::<2>(&Exact, &prev, &pose2(9.0, 9.0, 1.0), &mut rng);
+            let e = mean.inverse() * p;
+            let v = [e.translation.x, e.translation.y, e.rotation.angle()];
+            for k in 0..3 {
+                sq[k] += v[k] * v[k];
             }
         }
-        for (cx, cy) in [(2.0, 1.5), (-3.0, -2.0)] {
-            for a in 0..40 {
-                let t = a as f64 / 40.0 * std::f64::consts::TAU;
-                for z in steps(lz) {
-                    add(Vector3::new(
-                        cx + 0.4 * t.cos(),
-                        cy + 0.4 * t.sin(),
-                        z - 1.0,
-                    ));
-                }
-            }
+        for k in 0..3 {
+            let got = (sq[k] / n as f64).sqrt();
+            assert!((got - sd[k]).abs() < 0.05 * sd[k], "{k}: {got}");
         }
-        pts.into_iter().map(|p| p.coords).collect()
     }
 
     #[test]
-    fn recovers_a_metre_and_ten_degrees() {
-        let params = ProposalParams::from_config(&Map3dConfig::default());
-        let first = Pose3::identity();
-        let truth = Pose3::new(Vector3::new(0.8, 0.3, 0.05), Vector3::new(0.01, -0.01, 0.2));
-        // The prior is off by 1.2 m and 12° (mostly yaw) from the truth.
-        let err = Pose3::new(Vector3::new(1.0, -0.6, 0.1), Vector3::new(0.0, 0.02, -0.21));
-        let initial = truth * err;
-        assert!(err.translation.vector.norm() >= 1.0 && err.rotation.angle() >= 10f64.to_radians());
-        let mut prop = Proposal::new(params);
-        let a = prop.prepare(&to_f32(&room_points(&first)));
-        prop.push(0, a);
-        let b = prop.prepare(&to_f32(&room_points(&truth)));
-        let got = prop.align(&b, &initial, |_| Some(first)).expect("aligned");
-        let e = truth.inverse() * got.pose;
-        assert!(e.translation.vector.norm() < 0.02, "{e:?}");
-        assert!(e.rotation.angle() < 0.3f64.to_radians(), "{e:?}");
-        assert!(got.inliers > 500);
+    fn a_singular_covariance_is_no_matched_proposal() {
+        let cov = DMatrix::<f64>::zeros(3, 3);
+        assert!(Proposal::matched(pose2(0.0, 0.0, 0.0), cov).is_none());
     }
 
-    /// The covariance is small where the sweep constrains the pose and large
-    /// where it does not: on a lone floor, x, y and yaw are free.
     #[test]
-    fn covariance_follows_what_the_geometry_constrains() {
-        let params = ProposalParams::from_config(&Map3dConfig::default());
-        let floor = |sensor: &Pose3| -> Vec<Vector3<f64>> {
-            let mut v = Vec::new();
-            for i in -60..=60 {
-                for j in -60..=60 {
-                    let p = Vector3::new(i as f64 * 0.1, j as f64 * 0.1, -1.0);
-                    v.push((sensor.inverse() * nalgebra::Point3::from(p)).coords);
-                }
-            }
-            v
-        };
-        let truth = Pose3::new(Vector3::new(0.3, 0.0, 0.0), Vector3::zeros());
-        let map = LocalMap::build(
-            &[(Pose3::identity(), &floor(&Pose3::identity())[..])],
-            &params,
+    fn the_motion_proposal_is_the_motion_model() {
+        let mut a = Pcg64::seed_from_u64(2);
+        let p: Pose2 = Proposal::Motion.sample::<2>(
+            &Exact,
+            &pose2(1.0, 0.0, 0.0),
+            &pose2(1.0, 0.0, 0.5),
+            &mut a,
         );
-        let got = align(&map, &floor(&truth), &truth, &params).expect("aligned");
-        let c = got.covariance;
-        // [ωx, ωy, ωz, tx, ty, tz]: roll, pitch and height are fixed by the
-        // plane to well under a millimetre / a hundredth of a degree ...
-        for k in [0, 1, 5] {
-            assert!(c[(k, k)].sqrt() < 1e-3, "{k}: {}", c[(k, k)].sqrt());
-        }
-        // ... yaw, x and y not at all.
-        for k in [2, 3, 4] {
-            assert!(c[(k, k)].sqrt() > 0.1, "{k}: {}", c[(k, k)].sqrt());
-        }
-
-        // In the room everything is constrained, to millimetres.
-        let mut prop = Proposal::new(params);
-        let a = prop.prepare(&to_f32(&room_points(&Pose3::identity())));
-        prop.push(0, a);
-        let b = prop.prepare(&to_f32(&room_points(&truth)));
-        let got = prop
-            .align(&b, &truth, |_| Some(Pose3::identity()))
-            .expect("aligned");
-        for k in 0..6 {
-            let s = got.covariance[(k, k)].sqrt();
-            assert!(s > 0.0 && s < 0.005, "{k}: {s}");
-        }
-    }
-
-    #[test]
-    fn too_few_points_is_no_alignment() {
-        let params = ProposalParams::from_config(&Map3dConfig::default());
-        let map = LocalMap::build(
-            &[(Pose3::identity(), &[Vector3::new(1.0, 0.0, 0.0)][..])],
-            &params,
-        );
-        assert_eq!(map.len(), 1);
-        assert!(
-            align(
-                &map,
-                &[Vector3::new(1.0, 0.0, 0.0)],
-                &Pose3::identity(),
-                &params
-            )
-            .is_none()
-        );
-    }
-
-    #[test]
-    fn downsampling_keeps_one_centroid_per_voxel_in_first_seen_order() {
-        let pts = [
-            Vector3::new(0.05, 0.05, 0.05),
-            Vector3::new(1.05, 0.0, 0.0),
-            Vector3::new(0.15, 0.15, 0.15),
-        ];
-        let d = voxel_downsample(pts, 0.2);
-        assert_eq!(d.len(), 2);
-        assert!((d[0] - Vector3::new(0.1, 0.1, 0.1)).norm() < 1e-12);
-        assert!((d[1] - pts[1]).norm() < 1e-12);
-    }
-
-    fn to_f32(v: &[Vector3<f64>]) -> Vec<[f32; 3]> {
-        v.iter()
-            .map(|p| [p.x as f32, p.y as f32, p.z as f32])
-            .collect()
+        assert_eq!(p, pose2(1.0, 0.0, 0.0) * pose2(1.0, 0.0, 0.5));
     }
 }

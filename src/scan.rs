@@ -57,3 +57,56 @@ impl LaserScan2d {
         !r.is_finite() || r >= self.max_range || r <= 0.0
     }
 }
+
+/// One 2-D laser reading as a driver reports it (sensor frame), borrowed:
+/// what [`crate::slam::Slam2d::add_scan`] takes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Ranges2d<'a> {
+    /// Ranges, m, counter-clockwise from `angle_min`. NaN, ±inf, values
+    /// ≤ 0 and values ≥ `max_range` mean "no return".
+    pub ranges: &'a [f64],
+    /// Angle of the first beam from the laser's forward axis, rad.
+    pub angle_min: f64,
+    /// Angle between consecutive beams, rad.
+    pub angle_increment: f64,
+    /// Readings at or above this (m) are "no return".
+    pub max_range: f64,
+}
+
+impl Ranges2d<'_> {
+    /// Whether reading `i` is a "no return".
+    pub fn is_no_return(&self, i: usize) -> bool {
+        let r = self.ranges[i];
+        !r.is_finite() || r >= self.max_range || r <= 0.0
+    }
+
+    /// Why the reading cannot be used, if it cannot: no beams, or
+    /// non-finite angles or maximum range.
+    pub fn check(&self) -> std::result::Result<(), String> {
+        if self.ranges.is_empty() {
+            return Err("the laser reading has no beams".into());
+        }
+        if !(self.angle_min.is_finite() && self.angle_increment.is_finite()) {
+            return Err("the laser reading's angles are not finite".into());
+        }
+        if self.max_range.is_nan() || self.max_range <= 0.0 {
+            return Err(format!(
+                "the laser reading's maximum range {} is not positive",
+                self.max_range
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl LaserScan2d {
+    /// The reading alone, for [`crate::slam::Slam2d::add_scan`].
+    pub fn as_ranges(&self) -> Ranges2d<'_> {
+        Ranges2d {
+            ranges: &self.ranges,
+            angle_min: self.angle_min,
+            angle_increment: self.angle_increment,
+            max_range: self.max_range,
+        }
+    }
+}

@@ -35,7 +35,7 @@ fn a_sample_of_particles_estimates_the_shared_free_space_update() {
         });
         let before = root_free_path(&f);
         for s in &prepared.steps {
-            f.step(&s.delta, &s.scan, s.index);
+            f.step(&s.input());
         }
         totals.push(root_free_path(&f) - before);
         entries.push(f.map().entry_count());

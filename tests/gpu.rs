@@ -18,6 +18,7 @@
 
 use dpslam::backend::bench::{Fixture, FixturePose, FixtureSpec, fixture2d, fixture3d};
 use dpslam::backend::{Backend, make_scorer};
+use dpslam::filter::StepInput;
 use dpslam::geometry::{Pose, Pose2, Pose3};
 use dpslam::gpu::{ENTRY_CHUNKS, GpuOptions, GpuPrecision, GpuScorer, HEADER_CHUNKS};
 use dpslam::laser_model::Trace;
@@ -144,7 +145,7 @@ fn gpu_matches_cpu_in_2d() {
     // A filter step changes the map and the numbering: the next call must see both.
     let delta = Pose2::new(nalgebra::Vector2::new(0.25, 0.02), 0.0);
     let scan = fx.scan.clone();
-    fx.filter.step(&delta, &scan, 99);
+    fx.filter.step(&StepInput::motion(delta, &scan, 99));
     let particles = fx.filter.particles().to_vec();
     for (i, c) in fx.candidates.iter_mut().enumerate() {
         c.node = particles[i % particles.len()].node;
@@ -258,7 +259,11 @@ fn incremental_steps<const D: usize, P: FixturePose<D>>(
     let (mut rebuilt, mut sent, mut whole, mut chunks) = (0, 0, 0, 0);
     for i in 0..steps {
         let scan = fx.scan.clone();
-        fx.filter.step(&P::identity().moved(stride), &scan, 100 + i);
+        fx.filter.step(&StepInput::motion(
+            P::identity().moved(stride),
+            &scan,
+            100 + i,
+        ));
         let particles = fx.filter.particles().to_vec();
         for (j, c) in fx.candidates.iter_mut().enumerate() {
             c.node = particles[j % particles.len()].node;

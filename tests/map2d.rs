@@ -143,7 +143,7 @@ fn motion_learning_recovers_the_simulated_odometry_bias_and_records_the_model() 
     let out = dir.path().join("run");
     let cfg = small_config();
     let mut seen = 0;
-    let (s, rounds) = dpslam::pipeline::map2d::run_map2d_learning(
+    let (s, rounds) = dpslam::pipeline::learn_motion::run_map2d_learning(
         &log,
         &out,
         &cfg,

@@ -10,7 +10,7 @@
 //! longer than the laser's range, so some beams are "no return".
 
 use crate::config::{FilterConfig, LaserConfig};
-use crate::filter::ParticleFilter;
+use crate::filter::{ParticleFilter, StepInput};
 use crate::geometry::{Pose, Pose2, Pose3, pose2, xyt};
 use crate::laser_model::{LaserModel, Trace};
 use crate::motion_model::MotionModel;
@@ -230,7 +230,7 @@ fn build<const D: usize, P: FixturePose<D>>(
     for i in 0..spec.steps {
         truth = truth.moved(stride);
         let scan = scan_at(world, &truth, sensor, dirs, max_range);
-        filter.step(&delta, &scan, i as u32 + 1);
+        filter.step(&StepInput::motion(delta, &scan, i as u32 + 1));
     }
     let next = truth.moved(stride);
     let scan = scan_at(world, &next, sensor, dirs, max_range);
@@ -517,7 +517,8 @@ fn gpu_path<const D: usize, P: FixturePose<D>>(
     let last = gpu.last_call();
     results.push(s);
     let scan = fx.scan.clone();
-    fx.filter.step(&P::identity(), &scan, u32::MAX);
+    fx.filter
+        .step(&StepInput::motion(P::identity(), &scan, u32::MAX));
     let particles = fx.filter.particles().to_vec();
     for (i, c) in fx.candidates.iter_mut().enumerate() {
         c.node = particles[i % particles.len()].node;

@@ -24,7 +24,8 @@ use crate::eval::relations::{
 use crate::geometry::xyt;
 use crate::io::log2d::open_log2d;
 use crate::io::tum::{Stamped, read_tum};
-use crate::pipeline::map2d::{run_map2d, run_map2d_learning};
+use crate::pipeline::learn_motion::run_map2d_learning;
+use crate::pipeline::map2d::run_map2d;
 use crate::sim::perturb::{NoiseModel, perturb_log};
 use crate::{Error, Result};
 use nalgebra::{Isometry3, Point3, Vector3};

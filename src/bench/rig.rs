@@ -3,13 +3,14 @@
 //! first of them, and the pieces of one step that can be timed on their own.
 
 use crate::config::Config;
-use crate::filter::{ParticleFilter, Sample};
+use crate::filter::{ParticleFilter, Sample, StepInput};
 use crate::geometry::{Pose, Pose2};
 use crate::io::log2d::open_log2d;
 use crate::laser_model::{LaserModel, Trace};
-use crate::pipeline::map2d::{new_filter, sensor_mount, to_scan, usable_range};
+use crate::pipeline::map2d::sensor_mount;
 use crate::scan::Scan;
 use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
+use crate::slam::slam2d::{moved_enough, new_filter, to_scan, usable_range};
 use crate::{Error, Result};
 use std::path::Path;
 
@@ -22,6 +23,13 @@ pub struct PreparedStep {
     pub scan: Scan<2, Pose2>,
     /// Index of the scan in the input.
     pub index: u32,
+}
+
+impl PreparedStep {
+    /// The filter step's input: samples from the motion model.
+    pub fn input(&self) -> StepInput<'_, 2, Pose2> {
+        StepInput::motion(self.delta, &self.scan, self.index)
+    }
 }
 
 /// The processed scans of a log, in memory.
@@ -53,16 +61,19 @@ pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<Prepare
         let index = index as u32;
         if first.is_none() {
             max_range = usable_range(cfg, s.max_range);
-            first = Some(to_scan(&s, sensor, cfg.laser.max_beams, max_range));
+            first = Some(to_scan(
+                &s.as_ranges(),
+                sensor,
+                cfg.laser.max_beams,
+                max_range,
+            ));
             last_odo = s.odometry;
         } else {
             let delta = last_odo.inverse() * s.odometry;
-            if delta.translation.vector.norm() >= f.min_translation
-                || delta.rotation.angle().abs() >= f.min_rotation
-            {
+            if moved_enough(f, &delta) {
                 steps.push(PreparedStep {
                     delta,
-                    scan: to_scan(&s, sensor, cfg.laser.max_beams, max_range),
+                    scan: to_scan(&s.as_ranges(), sensor, cfg.laser.max_beams, max_range),
                     index,
                 });
                 last_odo = s.odometry;
@@ -100,7 +111,7 @@ impl PreparedLog {
         }
         let mut filter = self.new_filter(particles);
         for s in &self.steps[..warmup] {
-            filter.step(&s.delta, &s.scan, s.index);
+            filter.step(&s.input());
         }
         Ok(filter)
     }

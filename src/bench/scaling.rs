@@ -147,7 +147,7 @@ pub fn run_scaling(opts: &ScalingOptions) -> Result<ScalingReport> {
         let mut times = Vec::with_capacity(opts.timed_steps);
         for s in &log.steps[opts.warmup_scans..opts.warmup_scans + opts.timed_steps] {
             let t = Instant::now();
-            std::hint::black_box(filter.step(&s.delta, &s.scan, s.index));
+            std::hint::black_box(filter.step(&s.input()));
             times.push(t.elapsed().as_secs_f64());
         }
         let mean = times.iter().sum::<f64>() / times.len() as f64;

@@ -100,7 +100,7 @@ pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
     a.topics.apply(&mut cfg);
     let log = a.log.unwrap_or_else(|| PathBuf::from(DEFAULT_LOG));
     let s = if a.learn_motion > 0 {
-        let report = |r: &dpslam::pipeline::map2d::LearnRound| {
+        let report = |r: &dpslam::pipeline::learn_motion::LearnRound| {
             let m = &r.fit.model;
             eprintln!(
                 "learn-motion round {}/{}: {} steps ({} left out), log-likelihood per step \
@@ -123,7 +123,7 @@ pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
                 r.wall_time_s
             );
         };
-        dpslam::pipeline::map2d::run_map2d_learning(
+        dpslam::pipeline::learn_motion::run_map2d_learning(
             &log,
             &a.out,
             &cfg,

@@ -257,10 +257,7 @@ impl TumWriter {
                 self.rows
             )));
         }
-        let [x, y, z, qx, qy, qz, qw] = *pose;
-        self.write_raw(format_args!(
-            "{t:.6} {x:.9} {y:.9} {z:.9} {qx:.9} {qy:.9} {qz:.9} {qw:.9}\n"
-        ))
+        self.write_raw(format_args!("{}\n", tum_line(t, pose)))
     }
 
     /// Appends a stamped pose; see [`TumWriter::write`].
@@ -299,6 +296,13 @@ pub fn write_tum(path: &Path, rows: &[(f64, [f64; 7])]) -> Result<()> {
         w.write(*t, pose)?;
     }
     w.finish()
+}
+
+/// One TUM row, as [`TumWriter`] writes it (no newline): time `t` (s, 6
+/// decimals) and `x y z qx qy qz qw` (9 decimals).
+pub fn tum_line(t: f64, pose: &[f64; 7]) -> String {
+    let [x, y, z, qx, qy, qz, qw] = *pose;
+    format!("{t:.6} {x:.9} {y:.9} {z:.9} {qx:.9} {qy:.9} {qz:.9} {qw:.9}")
 }
 
 /// Writes stamped poses as a TUM trajectory atomically; see [`TumWriter`].

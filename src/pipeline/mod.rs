@@ -5,6 +5,7 @@
 //! file is written under a temporary name and renamed, and only after the
 //! whole input was processed, so a failed run leaves no half-written output.
 
+pub mod learn_motion;
 pub mod map2d;
 pub mod map3d;
 

@@ -152,6 +152,20 @@ impl SweepSource {
         }
     }
 
+    /// An error about sweep `i`: naming its file, or its bag, topic and
+    /// message index.
+    pub fn error_at(&self, i: usize, reason: String) -> Error {
+        match self {
+            SweepSource::Files(p) => Error::in_file(&p[i], reason),
+            SweepSource::Bag(b) => super::message_error(
+                b.bag.file_for_messages(),
+                &b.topic,
+                b.clouds[i].index,
+                reason,
+            ),
+        }
+    }
+
     /// What sweep `i` is, for messages: its file, or bag, topic and index.
     pub fn describe(&self, i: usize) -> String {
         match self {

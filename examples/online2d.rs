@@ -1,0 +1,58 @@
+//! Drives 2-D DP-SLAM scan by scan, as robot code would: read a log (the
+//! embedded simulated loop by default), hand each laser scan and its
+//! odometry pose to [`Slam2d::add_scan`], print the online estimate as it
+//! goes (stderr), and at the end the whole corrected trajectory in TUM form
+//! (stdout), which equals `dpslam map2d`'s `trajectory.tum` for the same log
+//! and seed.
+//!
+//! ```sh
+//! cargo run --release --example online2d > trajectory.tum
+//! cargo run --release --example online2d -- LOG [PARTICLES] > trajectory.tum
+//! ```
+
+use dpslam::config::Config;
+use dpslam::geometry::{Pose, xyt};
+use dpslam::io::log2d::open_log2d;
+use dpslam::io::tum::tum_line;
+use dpslam::pipeline::map2d::{RangeSurvey, sensor_mount};
+use dpslam::slam::Slam2d;
+use std::path::PathBuf;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut args = std::env::args().skip(1);
+    let log = args.next().map(PathBuf::from).unwrap_or_else(|| {
+        PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/data/sim2d/sim2d.clf"))
+    });
+    let mut cfg = Config::default();
+    if let Some(n) = args.next() {
+        cfg.filter.particles = n.parse()?;
+    }
+
+    let mut slam = Slam2d::new(cfg.clone())?;
+    // What `map2d` does before mapping: take the "no return" threshold from
+    // the whole log when its readings contradict the declared maximum.
+    let survey = RangeSurvey::of_log(&log)?;
+    slam.set_no_return_range(survey.sensor_max(cfg.laser.trust_declared_max_range));
+    let reader = open_log2d(&log)?;
+    slam.set_mount(sensor_mount(&cfg, reader.format()));
+
+    for item in reader {
+        let scan = item?;
+        let stamp = scan.timestamp.unwrap_or(slam.scans() as f64);
+        let estimate = slam.add_scan(stamp, scan.odometry, &scan.as_ranges())?;
+        if estimate.processed && estimate.index % 25 == 0 {
+            let (x, y, th) = xyt(&estimate.pose);
+            eprintln!(
+                "scan {:5} t {:10.3}: x {x:8.3} m, y {y:8.3} m, θ {:7.2}°",
+                estimate.index,
+                estimate.stamp,
+                th.to_degrees()
+            );
+        }
+    }
+    slam.finish();
+    for (t, pose) in slam.trajectory()? {
+        println!("{}", tum_line(t, &Pose::<2>::to_tum(&pose)));
+    }
+    Ok(())
+}
