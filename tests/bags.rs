@@ -487,3 +487,29 @@ fn map2d_on_the_sqlite3_bag_writes_one_pose_per_scan_at_the_header_stamps() {
     assert_eq!(run["format"], "RosBag");
     assert_eq!(run["scans"], 1000);
 }
+
+#[test]
+fn mcap_with_lz4_chunks_reads_like_zstd() {
+    // Rewrite the zstd MCAP with lz4 chunks (mcap's writer), read both.
+    let src = ds("ros/ros2/aces-mcap/aces-mcap.mcap");
+    let dir = tempfile::tempdir().unwrap();
+    let dst = dir.path().join("aces-lz4.mcap");
+    let buf = std::fs::read(&src).unwrap();
+    {
+        let f = std::io::BufWriter::new(std::fs::File::create(&dst).unwrap());
+        let mut w = mcap::WriteOptions::new()
+            .compression(Some(mcap::Compression::Lz4))
+            .create(f)
+            .unwrap();
+        for m in mcap::MessageStream::new(&buf).unwrap() {
+            w.write(&m.unwrap()).unwrap();
+        }
+        w.finish().unwrap();
+    }
+    let raw = std::fs::read(&dst).unwrap();
+    assert!(
+        raw.windows(3).any(|w| w == b"lz4"),
+        "the rewritten file has lz4 chunks"
+    );
+    same_scans(&scans(&dst), &scans(&src), "lz4 mcap");
+}
