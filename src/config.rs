@@ -32,6 +32,9 @@ pub struct Config {
     pub hierarchy: HierarchyConfig,
     /// The GPU likelihood backend (`--features gpu`, `--backend gpu|auto`).
     pub gpu: GpuConfig,
+    /// Topics read from a ROS bag input (`--scan-topic`, `--odom-topic`;
+    /// unset: guessed, see [`crate::io::bag`]).
+    pub bag: crate::io::bag::scans2d::TopicChoice,
 }
 
 /// The arithmetic of the GPU likelihood shader (see `crate::gpu`).
@@ -381,6 +384,7 @@ impl Default for Config {
             motion_learning: MotionLearningConfig::default(),
             hierarchy: HierarchyConfig::default(),
             gpu: GpuConfig::default(),
+            bag: Default::default(),
         }
     }
 }

@@ -14,6 +14,13 @@ pub enum Location {
     Byte(u64),
     /// The file as a whole (empty, truncated, wrong size, ...).
     File,
+    /// One message of a ROS bag: its topic and 0-based index in that topic.
+    Message {
+        /// The topic.
+        topic: String,
+        /// The message's 0-based index in that topic.
+        index: usize,
+    },
 }
 
 impl std::fmt::Display for Location {
@@ -22,6 +29,7 @@ impl std::fmt::Display for Location {
             Location::Line(n) => write!(f, "line {n}"),
             Location::Byte(b) => write!(f, "byte {b}"),
             Location::File => write!(f, "file"),
+            Location::Message { topic, index } => write!(f, "topic {topic}, message {index}"),
         }
     }
 }

@@ -6,18 +6,50 @@ use std::path::PathBuf;
 /// The log mapped when none is given: the simulator's loop shipped in `data/`.
 pub const DEFAULT_LOG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/sim2d/sim2d.clf");
 
+/// The same log, embedded in the binary: `map2d` with no log maps it, so
+/// that a moved or installed binary needs no source tree.
+pub const EMBEDDED_LOG: &[u8] = include_bytes!("../../data/sim2d/sim2d.clf");
+
+/// A file in the temporary folder, removed when dropped.
+pub struct TempFile(pub PathBuf);
+
+impl Drop for TempFile {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+/// Writes the embedded default log to the temporary folder.
+pub fn embedded_log() -> dpslam::Result<TempFile> {
+    let p = std::env::temp_dir().join(format!("dpslam-sim2d-{}.clf", std::process::id()));
+    std::fs::write(&p, EMBEDDED_LOG).map_err(|e| dpslam::Error::io(&p, e))?;
+    Ok(TempFile(p))
+}
+
+/// Parses a count flag (`--particles`): a whole number ≥ 1, with a message
+/// that says so (clap's own tip for `-1` suggests `-- -1`, which is wrong).
+pub fn parse_count(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(0) => Err("must be at least 1".into()),
+        Ok(n) => Ok(n),
+        Err(_) => Err(format!("'{s}' is not a whole number ≥ 1")),
+    }
+}
+
 #[derive(clap::Args, Debug)]
 pub struct Map2dArgs {
-    /// CARMEN (.clf/.log) or DP-SLAM log, plain or gzip [default: the shipped simulated loop]
+    /// CARMEN (.clf/.log) or DP-SLAM log, plain or gzip, or a ROS bag (.bag, .mcap, .db3 or a ROS 2 bag directory) [default: the shipped simulated loop]
     pub log: Option<PathBuf>,
     /// Output folder (map.png, map.pgm, map.yaml, trajectory.tum, run.json, config.toml)
     #[arg(long, default_value = "out/map2d")]
     pub out: PathBuf,
     /// Particles [default: 50, or the config file's]
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true, value_parser = parse_count)]
     pub particles: Option<usize>,
     #[command(flatten)]
     pub run: RunArgs,
+    #[command(flatten)]
+    pub topics: TopicArgs,
     /// Where scan likelihoods are computed (gpu needs a build with `--features gpu` and a Vulkan driver; auto falls back to cpu)
     #[arg(long, value_enum, default_value_t = dpslam::backend::Backend::Cpu)]
     pub backend: dpslam::backend::Backend,
@@ -64,6 +96,29 @@ fn gpu_settings_from_env(cfg: &mut Config) -> dpslam::Result<()> {
     Ok(())
 }
 
+/// Topic flags for ROS bag inputs.
+#[derive(clap::Args, Debug)]
+pub struct TopicArgs {
+    /// ROS bag input: the sensor_msgs/LaserScan (map2d) or PointCloud2 (map3d) topic [default: the bag's only one]
+    #[arg(long, value_name = "TOPIC")]
+    pub scan_topic: Option<String>,
+    /// ROS bag input: the nav_msgs/Odometry or tf topic [default: the only Odometry topic, else /tf odom -> base]
+    #[arg(long, value_name = "TOPIC")]
+    pub odom_topic: Option<String>,
+}
+
+impl TopicArgs {
+    /// Sets the configuration's `[bag]` topics from the flags given.
+    pub fn apply(&self, cfg: &mut Config) {
+        if let Some(t) = &self.scan_topic {
+            cfg.bag.scan_topic = Some(t.clone());
+        }
+        if let Some(t) = &self.odom_topic {
+            cfg.bag.odom_topic = Some(t.clone());
+        }
+    }
+}
+
 /// Loads the config file (if any) and applies the flags over it.
 pub fn build_config(run: &RunArgs, particles: Option<usize>) -> dpslam::Result<Config> {
     let (file, seed, threads) = (run.config.as_ref(), run.seed, run.threads);
@@ -94,7 +149,21 @@ pub fn build_config(run: &RunArgs, particles: Option<usize>) -> dpslam::Result<C
 pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
     let mut cfg = build_config(&a.run, a.particles)?;
     cfg.hierarchy.enabled |= a.hierarchical;
-    let log = a.log.unwrap_or_else(|| PathBuf::from(DEFAULT_LOG));
+    a.topics.apply(&mut cfg);
+    dpslam::pipeline::preflight::check_memory(
+        &cfg,
+        dpslam::pipeline::preflight::available_memory(),
+    )?;
+    dpslam::pipeline::preflight::check_out_dir(&a.out)?;
+    let embedded = match &a.log {
+        Some(_) => None,
+        None => Some(embedded_log()?),
+    };
+    let log = match (&a.log, &embedded) {
+        (Some(l), _) => l.clone(),
+        (None, Some(t)) => t.0.clone(),
+        (None, None) => unreachable!("the embedded log is written when no log is given"),
+    };
     let s = if a.learn_motion > 0 {
         let report = |r: &dpslam::pipeline::learn_motion::LearnRound| {
             let m = &r.fit.model;

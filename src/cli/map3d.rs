@@ -9,10 +9,21 @@ pub const DEFAULT_INPUT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/sim3d
 /// The odometry prior of the shipped simulated sequence.
 pub const DEFAULT_ODOMETRY: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/sim3d/odometry.tum");
 
+/// A folder in the temporary folder, removed when dropped.
+struct TempDir(PathBuf);
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 #[derive(clap::Args, Debug)]
 pub struct Map3dArgs {
     /// Directory of sweeps (.pcd .ply .bin .xyz .txt .vtk .3d), mapped in
-    /// file-name order [default: the shipped simulated sequence, with its odometry]
+    /// file-name order, or a ROS bag (.bag, .mcap, .db3 or a ROS 2 bag
+    /// directory) of sensor_msgs/PointCloud2 [default: the shipped simulated
+    /// sequence, with its odometry]
     pub input: Option<PathBuf>,
     /// Output folder (map.ply, trajectory.tum, run.json, config.toml, points.ply)
     #[arg(long)]
@@ -21,10 +32,12 @@ pub struct Map3dArgs {
     #[arg(long)]
     pub poses: Option<PathBuf>,
     /// Particles [default: 20, or the config file's `filter.particles`]
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::map2d::parse_count)]
     pub particles: Option<usize>,
     #[command(flatten)]
     pub run: super::map2d::RunArgs,
+    #[command(flatten)]
+    pub topics: super::map2d::TopicArgs,
     /// Also write points.ply: the raw points registered with the trajectory
     #[arg(long)]
     pub points: bool,
@@ -54,13 +67,39 @@ pub fn build_config_3d(a: &Map3dArgs) -> dpslam::Result<Config> {
     if a.particles.is_none() && !file_sets_particles(a.run.config.as_ref())? {
         cfg.filter.particles = DEFAULT_PARTICLES_3D;
     }
+    a.topics.apply(&mut cfg);
     Ok(cfg)
 }
 
 pub fn run(a: Map3dArgs) -> dpslam::Result<()> {
     let cfg = build_config_3d(&a)?;
+    dpslam::pipeline::preflight::check_memory(
+        &cfg,
+        dpslam::pipeline::preflight::available_memory(),
+    )?;
+    dpslam::pipeline::preflight::check_out_dir(&a.out)?;
+    // Without the source tree (a moved or installed binary), the shipped
+    // sequence is simulated again: the same configuration and seed give
+    // the same files (tests/sim3d.rs checks it byte for byte).
+    let _regenerated;
     let (input, poses) = match &a.input {
         Some(dir) => (dir.clone(), a.poses.clone()),
+        None if !Path::new(DEFAULT_INPUT).is_dir() => {
+            let dir = std::env::temp_dir().join(format!("dpslam-sim3d-{}", std::process::id()));
+            eprintln!(
+                "map3d: {} not found: simulating the default sequence into {}",
+                DEFAULT_INPUT,
+                dir.display()
+            );
+            let cfg3 = dpslam::sim::sim3d::Sim3dConfig::embedded();
+            let written = dpslam::sim::sim3d::write_sim3d(&dir, &cfg3, 1);
+            _regenerated = TempDir(dir.clone());
+            written?;
+            (
+                dir.join("sweeps"),
+                a.poses.clone().or(Some(dir.join("odometry.tum"))),
+            )
+        }
         None => {
             let odo = PathBuf::from(DEFAULT_ODOMETRY);
             let poses = a

@@ -1,5 +1,5 @@
 //! Progress of long runs on stderr: a bar on a terminal, and on anything
-//! else (a pipe, CI, nohup) a line every 10 % or 10 s, so logs show that a
+//! else (a pipe, CI, nohup) a line every 5 % or 10 s, so logs show that a
 //! run is alive and how far it is.
 
 use std::io::IsTerminal;
@@ -48,7 +48,7 @@ impl Progress {
             bar.set_position(done);
             return;
         }
-        let tenth = (done * 10).checked_div(total).unwrap_or(0);
+        let tenth = (done * 20).checked_div(total).unwrap_or(0);
         if tenth > self.last_tenth || self.last_line.elapsed() >= LINE_EVERY {
             self.last_tenth = tenth;
             self.last_line = Instant::now();

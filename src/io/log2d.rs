@@ -1,4 +1,5 @@
-//! One streaming reader for 2-D laser logs, CARMEN or DP-SLAM, plain or gzip.
+//! One streaming reader for 2-D laser logs, CARMEN or DP-SLAM, plain or gzip,
+//! and ROS bags ([`crate::io::bag`]).
 //!
 //! The format is told from the first line that is neither empty nor a `#`
 //! comment: `Odometry` or `Laser` means the DP-SLAM format
@@ -7,6 +8,7 @@
 //! length of the log.
 
 use crate::geometry::Pose2;
+use crate::io::bag::scans2d::{BagScans2d, TopicChoice};
 use crate::io::carmen::CarmenParser;
 use crate::io::dpslam_log::{DpSlamParser, is_dpslam_keyword};
 use crate::io::source::TextSource;
@@ -21,11 +23,27 @@ pub enum LogFormat {
     Carmen,
     /// DP-SLAM 0.1.1 (`Odometry` / `Laser` pairs).
     DpSlam,
+    /// A ROS bag (ROS 1, MCAP, sqlite3 or a ROS 2 bag directory) with
+    /// `sensor_msgs/LaserScan` messages ([`crate::io::bag::scans2d`]).
+    RosBag,
 }
 
 enum Parser {
     Carmen(CarmenParser),
     DpSlam(DpSlamParser),
+}
+
+/// A text log being read.
+struct TextLog {
+    src: TextSource,
+    parser: Parser,
+    /// The line used to detect the format, parsed on the first `next`.
+    pending: Option<(usize, String)>,
+}
+
+enum Input {
+    Text(Box<TextLog>),
+    Bag(Box<BagScans2d>),
 }
 
 /// Streaming iterator over the laser scans of a 2-D log.
@@ -34,21 +52,33 @@ enum Parser {
 /// truncated gzip, I/O failure, or a log that ends without any laser scan)
 /// is the last item.
 pub struct LogReader2d {
-    src: TextSource,
+    input: Input,
     path: PathBuf,
     format: LogFormat,
-    parser: Parser,
-    /// The line used to detect the format, parsed on the first `next`.
-    pending: Option<(usize, String)>,
     scans_read: usize,
     done: bool,
 }
 
-/// Opens the 2-D log at `path` (plain or gzip) and detects its format.
+/// Opens the 2-D log at `path` (plain or gzip text, or a ROS bag with its
+/// topics guessed) and detects its format.
 ///
 /// Errors: the file cannot be opened or read (named by path), or it holds no
 /// line other than comments and blank lines ("no laser scans").
 pub fn open_log2d(path: &Path) -> Result<LogReader2d> {
+    open_log2d_with(path, &TopicChoice::default())
+}
+
+/// [`open_log2d`], with the topics to read when `path` is a ROS bag.
+pub fn open_log2d_with(path: &Path, topics: &TopicChoice) -> Result<LogReader2d> {
+    if crate::io::bag::is_bag(path) {
+        return Ok(LogReader2d {
+            input: Input::Bag(Box::new(BagScans2d::open(path, topics)?)),
+            path: path.to_path_buf(),
+            format: LogFormat::RosBag,
+            scans_read: 0,
+            done: false,
+        });
+    }
     let mut src = TextSource::open(path)?;
     let pending = loop {
         match src.next_line()? {
@@ -73,11 +103,13 @@ pub fn open_log2d(path: &Path) -> Result<LogReader2d> {
         (LogFormat::Carmen, Parser::Carmen(CarmenParser::new()))
     };
     Ok(LogReader2d {
-        src,
+        input: Input::Text(Box::new(TextLog {
+            src,
+            parser,
+            pending: Some(pending),
+        })),
         path: path.to_path_buf(),
         format,
-        parser,
-        pending: Some(pending),
         scans_read: 0,
         done: false,
     })
@@ -89,15 +121,30 @@ impl LogReader2d {
         self.format
     }
 
-    /// Bytes of the file on disk consumed so far (compressed bytes for gzip);
-    /// with [`LogReader2d::total_bytes`], for progress reports.
+    /// Bytes of the file on disk consumed so far (compressed bytes for gzip;
+    /// for a bag, its size times the share of scans delivered); with
+    /// [`LogReader2d::total_bytes`], for progress reports.
     pub fn bytes_read(&self) -> u64 {
-        self.src.bytes_read()
+        match &self.input {
+            Input::Text(t) => t.src.bytes_read(),
+            Input::Bag(b) => {
+                let n = b.total_scans().max(1) as u64;
+                self.total_bytes() / n * b.scans_read() as u64
+            }
+        }
     }
 
     /// Size of the file on disk (bytes).
     pub fn total_bytes(&self) -> u64 {
-        self.src.total_bytes()
+        match &self.input {
+            Input::Text(t) => t.src.total_bytes(),
+            Input::Bag(b) => b
+                .bag()
+                .files
+                .iter()
+                .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
+                .sum(),
+        }
     }
 
     /// The path being read.
@@ -110,30 +157,46 @@ impl LogReader2d {
         self.scans_read
     }
 
+    /// The bag being read, for a ROS bag.
+    pub fn bag_scans(&self) -> Option<&BagScans2d> {
+        match &self.input {
+            Input::Bag(b) => Some(b),
+            Input::Text(_) => None,
+        }
+    }
+
     /// The laser's pose in the robot frame (m, m, rad) when the log states it:
     /// CARMEN ROBOTLASER1 (laser pose relative to robot pose, latest scan) or
-    /// `PARAM robot_frontlaser_offset`. `None` otherwise, including DP-SLAM
+    /// `PARAM robot_frontlaser_offset`; a bag's static transforms from the
+    /// base frame to the laser's. `None` otherwise, including DP-SLAM
     /// logs (the release assumes 0.40 m forward, which the log does not say).
     pub fn sensor_offset(&self) -> Option<Pose2> {
-        match &self.parser {
-            Parser::Carmen(c) => c.sensor_offset(),
-            Parser::DpSlam(_) => None,
+        match &self.input {
+            Input::Text(t) => match &t.parser {
+                Parser::Carmen(c) => c.sensor_offset(),
+                Parser::DpSlam(_) => None,
+            },
+            Input::Bag(b) => b.sensor_offset(),
         }
     }
 
     fn next_scan(&mut self) -> Result<Option<LaserScan2d>> {
-        if let Some((n, line)) = self.pending.take()
-            && let Some(s) = parse(&mut self.parser, &self.path, n, &line)?
+        let t = match &mut self.input {
+            Input::Bag(b) => return b.next().transpose(),
+            Input::Text(t) => t,
+        };
+        if let Some((n, line)) = t.pending.take()
+            && let Some(s) = parse(&mut t.parser, &self.path, n, &line)?
         {
             return Ok(Some(s));
         }
         // Disjoint field borrows: the line lives in the source's buffer.
-        while let Some((n, line)) = self.src.next_line()? {
-            if let Some(s) = parse(&mut self.parser, &self.path, n, line)? {
+        while let Some((n, line)) = t.src.next_line()? {
+            if let Some(s) = parse(&mut t.parser, &self.path, n, line)? {
                 return Ok(Some(s));
             }
         }
-        if let Parser::Carmen(c) = &self.parser {
+        if let Parser::Carmen(c) = &t.parser {
             c.finish(&self.path)?;
         }
         if self.scans_read == 0 {

@@ -5,6 +5,7 @@
 //! recognised by their magic bytes, whatever their name.
 
 pub mod atomic;
+pub mod bag;
 pub mod carmen;
 pub mod dpslam_log;
 pub mod log2d;

@@ -5,7 +5,7 @@
 
 use crate::config::Config;
 use crate::geometry::{Pose, Pose2, pose2};
-use crate::io::log2d::{LogFormat, open_log2d};
+use crate::io::log2d::{LogFormat, LogReader2d, open_log2d, open_log2d_with};
 use crate::io::map_image::write_map;
 use crate::io::tum::write_tum;
 use crate::scan::LaserScan2d;
@@ -25,8 +25,17 @@ pub fn sensor_mount(cfg: &Config, format: LogFormat) -> Pose2 {
         Some([x, y, th]) => pose2(x, y, th),
         None => match format {
             LogFormat::DpSlam => pose2(DPSLAM_LASER_OFFSET, 0.0, 0.0),
-            LogFormat::Carmen => Pose2::identity(),
+            LogFormat::Carmen | LogFormat::RosBag => Pose2::identity(),
         },
+    }
+}
+
+/// [`sensor_mount`] for an open log: a ROS bag's laser mount from its
+/// static transforms, unless the configuration sets one.
+pub fn sensor_mount_of(cfg: &Config, reader: &LogReader2d) -> Pose2 {
+    match (cfg.motion2d.sensor_offset, reader.format()) {
+        (None, LogFormat::RosBag) => reader.sensor_offset().unwrap_or_else(Pose2::identity),
+        _ => sensor_mount(cfg, reader.format()),
     }
 }
 
@@ -216,12 +225,12 @@ pub fn run_filter2d_observed(
     let mut slam = Slam2d::new(cfg.clone())?;
     let (scorer, backend_used) = crate::backend::make_scorer::<2, Pose2>(backend, &cfg.gpu)?;
     slam.set_scorer(scorer)?;
-    let survey = RangeSurvey::of_log(log)?;
+    let survey = RangeSurvey::of_scans(open_log2d_with(log, &cfg.bag)?)?;
     let sensor_max = survey.sensor_max(cfg.laser.trust_declared_max_range);
     slam.set_no_return_range(sensor_max);
-    let mut reader = open_log2d(log)?;
+    let mut reader = open_log2d_with(log, &cfg.bag)?;
     let format = reader.format();
-    slam.set_mount(sensor_mount(cfg, format));
+    slam.set_mount(sensor_mount_of(cfg, &reader));
     let total = reader.total_bytes();
     let (mut first_time, mut last_time) = (None, None);
     while let Some(item) = reader.next() {

@@ -1,7 +1,8 @@
 //! The 3-D mapping run: a directory of laser sweeps in, a run folder out.
 //!
 //! A thin loop over [`Slam3d`] (see its module for what one sweep does):
-//! sweeps in file-name order ([`list_sweeps`]), the prior pose of sweep *i*
+//! sweeps in file-name order ([`crate::io::sweeps::list_sweeps`]) or a bag's
+//! clouds ([`SweepSource`]), the prior pose of sweep *i*
 //! from `--poses` (TUM or KITTI, pose *i* for sweep *i*), else from the
 //! sweep's own pose (3DTK `.pose`, PCD `VIEWPOINT`), else none (constant
 //! velocity).
@@ -16,8 +17,8 @@
 
 use crate::config::{Config, Map3dConfig};
 use crate::geometry::{Pose, Pose3};
+use crate::io::bag::sweeps3d::SweepSource;
 use crate::io::ply::{write_points_ply, write_voxel_ply};
-use crate::io::sweeps::{list_sweeps, read_sweep};
 use crate::io::tum::{read_poses, write_tum};
 use crate::slam::Slam3d;
 use crate::{Error, Result};
@@ -164,7 +165,7 @@ pub fn run_map3d_observed(
     let start = Instant::now();
     let mut slam = Slam3d::new(cfg.clone())?;
     let m = &cfg.map3d;
-    let paths = list_sweeps(input)?;
+    let paths = SweepSource::open(input, &cfg.bag)?;
     let prior_file = match poses {
         Some(p) => {
             let v = read_poses(p)?;
@@ -185,14 +186,14 @@ pub fn run_map3d_observed(
     };
     let (scorer, backend_used) = crate::backend::make_scorer::<3, Pose3>(opts.backend, &cfg.gpu)?;
     slam.set_scorer(scorer)?;
-    for (i, path) in paths.iter().enumerate() {
-        let sweep = read_sweep(path)?;
+    for i in 0..paths.len() {
+        let sweep = paths.read(i)?;
         let (stamp, prior) = match &prior_file {
             Some(v) => (v[i].t, Some(v[i].pose)),
-            None => (i as f64, sweep.prior),
+            None => (paths.stamp(i).unwrap_or(i as f64), sweep.prior),
         };
         slam.add_sweep(stamp, prior, &sweep.points)
-            .map_err(|e| Error::in_file(path, e.to_string()))?;
+            .map_err(|e| paths.error_at(i, e.to_string()))?;
         progress(i as u64 + 1, paths.len() as u64);
     }
 
@@ -273,11 +274,15 @@ pub fn run_map3d_observed(
 
 /// Re-reads the sweeps and registers their points with `poses` (one per
 /// sweep), keeping the first point per `points_voxel` voxel in the map frame.
-fn registered_points(paths: &[PathBuf], poses: &[Pose3], m: &Map3dConfig) -> Result<Vec<[f32; 3]>> {
+fn registered_points(
+    paths: &SweepSource,
+    poses: &[Pose3],
+    m: &Map3dConfig,
+) -> Result<Vec<[f32; 3]>> {
     let mut seen: FxHashMap<[i32; 3], ()> = FxHashMap::default();
     let mut out = Vec::new();
-    for (path, pose) in paths.iter().zip(poses) {
-        let sweep = read_sweep(path)?;
+    for (i, pose) in poses.iter().enumerate() {
+        let sweep = paths.read(i)?;
         for p in &sweep.points {
             let v = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
             let r = v.norm();

@@ -8,6 +8,7 @@
 pub mod learn_motion;
 pub mod map2d;
 pub mod map3d;
+pub mod preflight;
 
 use crate::{Error, Result};
 use serde::Serialize;
