@@ -307,7 +307,12 @@ struct LevelFit {
 /// Point-to-plane Gauss-Newton of `src` (sensor frame) against one level
 /// from `pose`, at most `iterations` iterations; `None` when an iteration
 /// finds too few correspondences.
-fn fit_level(level: &Level, src: &[Vector3<f64>], mut pose: Pose3, iterations: usize) -> Option<LevelFit> {
+fn fit_level(
+    level: &Level,
+    src: &[Vector3<f64>],
+    mut pose: Pose3,
+    iterations: usize,
+) -> Option<LevelFit> {
     let mut sigma: Option<f64> = None;
     let mut last = (0usize, 0.0f64);
     let mut info = Matrix6::<f64>::zeros();
@@ -455,7 +460,12 @@ pub fn align(
 /// the motion turned by each yaw offset (about the sensor's z axis, half
 /// before and half after the translation, as along an arc), and each of
 /// these without translation (the platform stopped, or turned on the spot).
-pub fn search_seeds(from: &Pose3, guess: &Pose3, yaw_step_deg: f64, yaw_max_deg: f64) -> Vec<Pose3> {
+pub fn search_seeds(
+    from: &Pose3,
+    guess: &Pose3,
+    yaw_step_deg: f64,
+    yaw_max_deg: f64,
+) -> Vec<Pose3> {
     let m = from.inverse() * guess;
     let mut seeds = vec![*guess];
     let mut yaws = vec![0.0];
