@@ -30,6 +30,62 @@ pub struct Config {
     pub motion_learning: MotionLearningConfig,
     /// Hierarchical SLAM (dissertation ch. 8), 2-D.
     pub hierarchy: HierarchyConfig,
+    /// The GPU likelihood backend (`--features gpu`, `--backend gpu|auto`).
+    pub gpu: GpuConfig,
+}
+
+/// The arithmetic of the GPU likelihood shader (see `crate::gpu`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum GpuPrecision {
+    /// f64 where the adapter supports it (`SHADER_F64`), else f32.
+    #[default]
+    Auto,
+    /// f32: fastest on consumer GPUs (f64 there runs at 1/32–1/64 rate);
+    /// scores within ~2e-4 nats of the CPU's.
+    F32,
+    /// f64: scores equal the CPU's to ~1e-12, so runs follow the CPU's
+    /// trajectory; an error where the adapter lacks `SHADER_F64`.
+    F64,
+}
+
+impl GpuPrecision {
+    /// Every value, in the order of the command line's help.
+    pub const ALL: [GpuPrecision; 3] = [GpuPrecision::Auto, GpuPrecision::F32, GpuPrecision::F64];
+}
+
+/// The command-line spelling (`auto`, `f32`, `f64`), as serde writes it.
+impl std::fmt::Display for GpuPrecision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            GpuPrecision::Auto => "auto",
+            GpuPrecision::F32 => "f32",
+            GpuPrecision::F64 => "f64",
+        })
+    }
+}
+
+impl std::str::FromStr for GpuPrecision {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|p| p.to_string().eq_ignore_ascii_case(s.trim()))
+            .ok_or_else(|| Error::Config(format!("GPU precision {s:?}: expected auto, f32 or f64")))
+    }
+}
+
+/// The GPU likelihood backend's settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct GpuConfig {
+    /// Shader arithmetic (default `auto`: f64 where the adapter has it).
+    pub precision: GpuPrecision,
+    /// Caps the size of each storage binding holding the map, bytes (at
+    /// least 256); 0: the adapter's own limit. For testing maps split over
+    /// several bindings.
+    pub max_binding: u64,
 }
 
 /// Hierarchical SLAM (dissertation ch. 8; Eliazar & Parr, NIPS 2005): the
@@ -360,6 +416,7 @@ impl Default for Config {
             map3d: Map3dConfig::default(),
             motion_learning: MotionLearningConfig::default(),
             hierarchy: HierarchyConfig::default(),
+            gpu: GpuConfig::default(),
         }
     }
 }
