@@ -183,6 +183,14 @@ pub struct Map3dConfig {
     /// Range-error variance σ² of the penetration model in 3-D, m²; replaces
     /// `laser.variance`, whose default (0.017) suits 2.9 cm cells, not voxels.
     pub variance: f64,
+    /// How far (in range-error stds σ = √variance) the 3-D likelihood
+    /// traces past a measured endpoint and how large a range error still
+    /// counts: `laser.trace_past_cells` and `laser.max_error_cells` are 20
+    /// cells, 4.4 σ on the 2-D grid but 20 σ (4 m) on 0.2 m voxels, where a
+    /// Gaussian weight beyond ≈ 5 σ is below 10⁻⁵ of the beam floor and
+    /// the trace past the endpoint is most of a beam's cost. 0: the
+    /// `laser` settings in cells.
+    pub trace_sigmas: f64,
     /// A voxel of the best particle's view is exported to `map.ply` when it
     /// has hits and a density ρ = hits / distance of at least this (stops/m).
     pub occupied_density: f64,
@@ -220,6 +228,28 @@ pub struct Map3dConfig {
     /// Mahalanobis error was ≈ 2× the expected 6, hence 2. 0 = sample with
     /// the motion noise alone around the aligned pose.
     pub icp_covariance_scale: f64,
+    /// Proposal, wide search: yaw offsets (degrees) tried around the
+    /// prior motion at the coarsest ICP level, every this many degrees up
+    /// to `search_yaw_max_deg` each way, with and without the prior's
+    /// translation; the best-explained start is refined (see
+    /// `icp::align_wide`). 0 = align from the prior alone.
+    pub search_yaw_step_deg: f64,
+    /// Proposal, wide search: largest yaw offset, degrees.
+    pub search_yaw_max_deg: f64,
+    /// Proposal, wide search: the search runs only when the prior's
+    /// consensus with the local map (the fraction of the sweep it explains)
+    /// falls this fraction below that of the recent sweeps, and another
+    /// start replaces the prior only when it explains this fraction more.
+    pub search_min_gain: f64,
+    /// Samples per particle in a step whose proposal is the scan matcher's
+    /// Gaussian (0: `filter.samples_per_particle`): they lie within the
+    /// matcher's uncertainty, so fewer cover it than the motion noise
+    /// needs.
+    pub matched_samples_per_particle: usize,
+    /// Run the quick culling passes (`filter.passes` over the endpoint
+    /// windows) before the full traces. Off by default in 3-D: samples
+    /// drawn from the matcher's Gaussian nearly all survive them.
+    pub quick_culling: bool,
     /// `points.ply`: one registered point per voxel of this edge, m.
     pub points_voxel: f64,
 }
@@ -233,6 +263,7 @@ impl Default for Map3dConfig {
             min_range: 0.5,
             beam_voxel: 0.2,
             variance: 0.04,
+            trace_sigmas: 5.0,
             occupied_density: 0.5,
             trans_std_per_m: 0.005,
             trans_std_per_rad: 0.02,
@@ -247,6 +278,11 @@ impl Default for Map3dConfig {
             icp_iterations: 30,
             icp_max_points: 50000,
             icp_covariance_scale: 2.0,
+            search_yaw_step_deg: 15.0,
+            search_yaw_max_deg: 90.0,
+            search_min_gain: 0.1,
+            matched_samples_per_particle: 5,
+            quick_culling: false,
             points_voxel: 0.1,
         }
     }
@@ -592,6 +628,13 @@ fn validate_map3d(m: &Map3dConfig) -> Result<()> {
         return bad(
             "beam_voxel, variance, icp_voxel, icp_max_distance and points_voxel must be positive",
         );
+    }
+    if !nonneg(m.search_yaw_step_deg) || !nonneg(m.search_yaw_max_deg) || !nonneg(m.search_min_gain)
+    {
+        return bad("search_yaw_step_deg, search_yaw_max_deg and search_min_gain must be ≥ 0");
+    }
+    if !nonneg(m.trace_sigmas) {
+        return bad("trace_sigmas must be ≥ 0");
     }
     if !nonneg(m.occupied_density) {
         return bad("occupied_density must be ≥ 0");

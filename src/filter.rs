@@ -68,6 +68,10 @@ pub struct Weights {
     pub after_quick: usize,
     /// Samples left after the full passes.
     pub after_full: usize,
+    /// Wall time of the quick passes, s.
+    pub quick_s: f64,
+    /// Wall time of the full passes, s.
+    pub full_s: f64,
 }
 
 /// Everything one filter step consumes.
@@ -113,6 +117,36 @@ pub struct StepStats {
     pub tree_nodes: usize,
     /// Entries in the DP-map after pruning.
     pub map_entries: usize,
+    /// Wall time of each phase of the step.
+    pub times: PhaseTimes,
+}
+
+/// Wall time (s) of the phases of one filter step, for profiles.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct PhaseTimes {
+    /// Drawing the samples.
+    pub predict_s: f64,
+    /// Weighing: the quick (endpoint-window) culling passes.
+    pub weigh_quick_s: f64,
+    /// Weighing: the full-trace passes.
+    pub weigh_full_s: f64,
+    /// Resampling.
+    pub resample_s: f64,
+    /// Map update (new nodes and their observations).
+    pub update_s: f64,
+    /// Pruning the tree and the map.
+    pub prune_s: f64,
+}
+
+impl std::ops::AddAssign for PhaseTimes {
+    fn add_assign(&mut self, o: Self) {
+        self.predict_s += o.predict_s;
+        self.weigh_quick_s += o.weigh_quick_s;
+        self.weigh_full_s += o.weigh_full_s;
+        self.resample_s += o.resample_s;
+        self.update_s += o.update_s;
+        self.prune_s += o.prune_s;
+    }
 }
 
 /// SplitMix64 finaliser: decorrelates seeds derived from small integers.
@@ -151,6 +185,8 @@ pub struct ParticleFilter<const D: usize, P: Pose<D>> {
     free_space_particles: usize,
     /// Computes scan likelihoods (CPU by default).
     scorer: Arc<dyn Scorer<D, P>>,
+    /// Weigh with the quick culling passes before the full ones.
+    quick_culling: bool,
     /// The map update's per-thread map caches: the CPU scorer's own while
     /// it scores (the update reads the map version the weigh step resolved,
     /// so its lookups hit cells already cached, and one set of caches is
@@ -229,6 +265,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             shared_free_space: true,
             free_space_particles: 0,
             scorer: cpu.clone(),
+            quick_culling: true,
             caches: cpu,
         }
     }
@@ -273,6 +310,19 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         self.free_space_particles = map.free_space_particles;
     }
 
+    /// Whether [`ParticleFilter::weigh`] runs the quick (endpoint-window)
+    /// culling passes before the full ones (the release does; default on).
+    /// They pay only when they cull: where samples come from a scan
+    /// matcher's Gaussian nearly all survive them.
+    pub fn set_quick_culling(&mut self, on: bool) {
+        self.quick_culling = on;
+    }
+
+    /// Samples drawn per particle from the next step on.
+    pub fn set_samples_per_particle(&mut self, k: usize) {
+        self.cfg.samples_per_particle = k.max(1);
+    }
+
     /// Replaces the scan scorer (e.g. with the GPU backend).
     pub fn set_scorer(&mut self, scorer: Box<dyn Scorer<D, P>>) {
         self.scorer = Arc::from(scorer);
@@ -286,13 +336,25 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     /// One filter step: predict → weigh → resample → update → prune.
     pub fn step(&mut self, input: &StepInput<'_, D, P>) -> StepStats {
         self.steps += 1;
+        let mut times = PhaseTimes::default();
+        let t = std::time::Instant::now();
         let samples = self.predict(&input.odometry, &input.proposal);
+        times.predict_s = t.elapsed().as_secs_f64();
         let weights = self.weigh(&samples, input.scan);
+        times.weigh_quick_s = weights.quick_s;
+        times.weigh_full_s = weights.full_s;
+        let t = std::time::Instant::now();
         let chosen = self.resample(&weights.scores);
+        times.resample_s = t.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
         let distinct_parents =
             self.update(&samples, &weights.scores, &chosen, input.scan, input.index);
+        times.update_s = t.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
         self.prune();
+        times.prune_s = t.elapsed().as_secs_f64();
         StepStats {
+            times,
             samples: samples.len(),
             after_quick: weights.after_quick,
             after_full: weights.after_full,
@@ -343,7 +405,13 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         let mut scores = vec![0.0f64; samples.len()];
         let mut alive: Vec<usize> = (0..samples.len()).collect();
         let mut survivors = [0usize; 2];
+        let mut secs = [0.0f64; 2];
         for (round, trace) in [Trace::Quick, Trace::Full].into_iter().enumerate() {
+            if trace == Trace::Quick && !self.quick_culling {
+                survivors[round] = alive.len();
+                continue;
+            }
+            let t = std::time::Instant::now();
             for &i in &alive {
                 scores[i] = 0.0;
             }
@@ -371,6 +439,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
                 alive.retain(|&i| scores[i] >= threshold);
             }
             survivors[round] = alive.len();
+            secs[round] = t.elapsed().as_secs_f64();
         }
         let mut out = vec![f64::NEG_INFINITY; samples.len()];
         for &i in &alive {
@@ -380,6 +449,8 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             scores: out,
             after_quick: survivors[0],
             after_full: survivors[1],
+            quick_s: secs[0],
+            full_s: secs[1],
         }
     }
 

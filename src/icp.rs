@@ -293,6 +293,127 @@ fn body_adjoint(pose: &Pose3) -> Matrix6<f64> {
     a
 }
 
+/// The outcome of Gauss-Newton on one level.
+struct LevelFit {
+    pose: Pose3,
+    /// Correspondences and their rms point-to-plane residual, m, in the
+    /// last iteration.
+    last: (usize, f64),
+    /// Information of the pose (normal matrix over the residual variance).
+    info: Matrix6<f64>,
+    iterations: usize,
+}
+
+/// Point-to-plane Gauss-Newton of `src` (sensor frame) against one level
+/// from `pose`, at most `iterations` iterations; `None` when an iteration
+/// finds too few correspondences.
+fn fit_level(
+    level: &Level,
+    src: &[Vector3<f64>],
+    mut pose: Pose3,
+    iterations: usize,
+) -> Option<LevelFit> {
+    let mut sigma: Option<f64> = None;
+    let mut last = (0usize, 0.0f64);
+    let mut info = Matrix6::<f64>::zeros();
+    let mut done = 0;
+    for it in 0..iterations {
+        done += 1;
+        // Residual scale of the robust (Cauchy) weight: the level's
+        // radius, annealed, at the first iterations; from the second on
+        // at most the spread of the last residuals, 2.385·σ̂ with σ̂ =
+        // 1.4826·median|r| (the Cauchy constant of 95 % efficiency under
+        // Gaussian noise, and a spread that outliers do not inflate).
+        // A fixed floor such as the voxel size gives mis-matched points
+        // (edges, clutter) near-full weight once the residuals of the
+        // true matches are centimetres, and biases the pose by as much.
+        let anneal = level.radius / (1.0 + it as f64);
+        let scale = match sigma {
+            Some(s) => anneal.min((CAUCHY_95 * s).max(MIN_SCALE)),
+            None => anneal,
+        };
+        let terms: Vec<Option<(Vector6<f64>, f64, f64)>> = src
+            .par_iter()
+            .map(|p| {
+                let q = pose * nalgebra::Point3::from(*p);
+                let q = q.coords;
+                let j = level.nearest(&q)?;
+                let n = level.normals[j]?;
+                let r = n.dot(&(q - level.points[j]));
+                let jac = q.cross(&n);
+                let row = Vector6::new(jac.x, jac.y, jac.z, n.x, n.y, n.z);
+                let w = 1.0 / (1.0 + (r / scale) * (r / scale));
+                Some((row, r, w))
+            })
+            .collect();
+        let mut h = Matrix6::<f64>::zeros();
+        let mut g = Vector6::<f64>::zeros();
+        let mut count = 0usize;
+        let mut sq = 0.0;
+        let mut abs_r: Vec<f64> = Vec::with_capacity(src.len());
+        for (row, r, w) in terms.into_iter().flatten() {
+            abs_r.push(r.abs());
+            h += row * row.transpose() * w;
+            g += row * (w * r);
+            count += 1;
+            sq += r * r;
+        }
+        if count < MIN_CORRESPONDENCES {
+            return None;
+        }
+        last = (count, (sq / count as f64).sqrt());
+        let mid = abs_r.len() / 2;
+        let med = *abs_r.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+        let s = (1.4826 * med).max(MIN_SCALE / CAUCHY_95);
+        sigma = Some(s);
+        // Information of the pose: the Gauss-Newton normal matrix over
+        // the residual variance (before damping).
+        info = h / (s * s);
+        // Light damping keeps directions without planes (a corridor's
+        // axis) from jumping.
+        let damping = 1e-6 * h.trace().max(1e-12);
+        for i in 0..6 {
+            h[(i, i)] += damping;
+        }
+        let xi = h.cholesky()?.solve(&(-g));
+        pose = left_update(&pose, &xi);
+        if xi.norm() < CONVERGED {
+            break;
+        }
+    }
+    Some(LevelFit {
+        pose,
+        last,
+        info,
+        iterations: done,
+    })
+}
+
+/// How well `src` (sensor frame) placed at `pose` agrees with one level:
+/// the sum over the points of a Cauchy weight of their point-to-plane
+/// residual at the scale of the level's voxel (0 for a point with no
+/// planar neighbour within the radius). Counts the points that the map
+/// explains; a wrong placement explains few.
+fn consensus(level: &Level, src: &[Vector3<f64>], pose: &Pose3) -> f64 {
+    let scale = level.voxel;
+    let w: Vec<f64> = src
+        .par_iter()
+        .map(|p| {
+            let q = (pose * nalgebra::Point3::from(*p)).coords;
+            let Some(j) = level.nearest(&q) else {
+                return 0.0;
+            };
+            let Some(n) = level.normals[j] else {
+                return 0.0;
+            };
+            let r = n.dot(&(q - level.points[j])) / scale;
+            let d2 = (q - level.points[j]).norm_squared() / (level.radius * level.radius);
+            (1.0 - d2).max(0.0) / (1.0 + r * r)
+        })
+        .collect();
+    w.iter().sum()
+}
+
 /// Aligns `source` (sensor-frame points, m) to `map` starting from `initial`
 /// (sensor pose in the map frame). Returns `None` when a level finds too few
 /// correspondences to be trusted (the caller keeps its prior then).
@@ -311,71 +432,11 @@ pub fn align(
             &voxel_downsample(source.iter().copied(), level.voxel),
             params.max_points,
         );
-        let mut sigma: Option<f64> = None;
-        for it in 0..params.iterations {
-            iterations += 1;
-            // Residual scale of the robust (Cauchy) weight: the level's
-            // radius, annealed, at the first iterations; from the second on
-            // at most the spread of the last residuals, 2.385·σ̂ with σ̂ =
-            // 1.4826·median|r| (the Cauchy constant of 95 % efficiency under
-            // Gaussian noise, and a spread that outliers do not inflate).
-            // A fixed floor such as the voxel size gives mis-matched points
-            // (edges, clutter) near-full weight once the residuals of the
-            // true matches are centimetres, and biases the pose by as much.
-            let anneal = level.radius / (1.0 + it as f64);
-            let scale = match sigma {
-                Some(s) => anneal.min((CAUCHY_95 * s).max(MIN_SCALE)),
-                None => anneal,
-            };
-            let terms: Vec<Option<(Vector6<f64>, f64, f64)>> = src
-                .par_iter()
-                .map(|p| {
-                    let q = pose * nalgebra::Point3::from(*p);
-                    let q = q.coords;
-                    let j = level.nearest(&q)?;
-                    let n = level.normals[j]?;
-                    let r = n.dot(&(q - level.points[j]));
-                    let jac = q.cross(&n);
-                    let row = Vector6::new(jac.x, jac.y, jac.z, n.x, n.y, n.z);
-                    let w = 1.0 / (1.0 + (r / scale) * (r / scale));
-                    Some((row, r, w))
-                })
-                .collect();
-            let mut h = Matrix6::<f64>::zeros();
-            let mut g = Vector6::<f64>::zeros();
-            let mut count = 0usize;
-            let mut sq = 0.0;
-            let mut abs_r: Vec<f64> = Vec::with_capacity(src.len());
-            for (row, r, w) in terms.into_iter().flatten() {
-                abs_r.push(r.abs());
-                h += row * row.transpose() * w;
-                g += row * (w * r);
-                count += 1;
-                sq += r * r;
-            }
-            if count < MIN_CORRESPONDENCES {
-                return None;
-            }
-            last = (count, (sq / count as f64).sqrt());
-            let mid = abs_r.len() / 2;
-            let med = *abs_r.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
-            let s = (1.4826 * med).max(MIN_SCALE / CAUCHY_95);
-            sigma = Some(s);
-            // Information of the pose: the Gauss-Newton normal matrix over
-            // the residual variance (before damping).
-            info = h / (s * s);
-            // Light damping keeps directions without planes (a corridor's
-            // axis) from jumping.
-            let damping = 1e-6 * h.trace().max(1e-12);
-            for i in 0..6 {
-                h[(i, i)] += damping;
-            }
-            let xi = h.cholesky()?.solve(&(-g));
-            pose = left_update(&pose, &xi);
-            if xi.norm() < CONVERGED {
-                break;
-            }
-        }
+        let fit = fit_level(level, &src, pose, params.iterations)?;
+        pose = fit.pose;
+        last = fit.last;
+        info = fit.info;
+        iterations += fit.iterations;
     }
     // A weak prior (1 m, 1 rad per axis) keeps the inverse finite where the
     // sweep leaves the pose free (a lone plane, a corridor's axis): there the
@@ -391,6 +452,99 @@ pub fn align(
         iterations,
         covariance: a * cov_map * a.transpose(),
     })
+}
+
+/// The start of a wide search: the poses from which [`align_wide`] tries
+/// the coarsest level, around a guess `g` of the sensor pose with the last
+/// sensor pose `from`. With the guess's motion `m = from⁻¹·g`: the guess,
+/// the motion turned by each yaw offset (about the sensor's z axis, half
+/// before and half after the translation, as along an arc), and each of
+/// these without translation (the platform stopped, or turned on the spot).
+pub fn search_seeds(
+    from: &Pose3,
+    guess: &Pose3,
+    yaw_step_deg: f64,
+    yaw_max_deg: f64,
+) -> Vec<Pose3> {
+    let m = from.inverse() * guess;
+    let mut seeds = vec![*guess];
+    let mut yaws = vec![0.0];
+    if yaw_step_deg > 0.0 {
+        let n = (yaw_max_deg / yaw_step_deg).floor() as i32;
+        for k in 1..=n {
+            let a = (k as f64 * yaw_step_deg).to_radians();
+            yaws.push(a);
+            yaws.push(-a);
+        }
+    }
+    let still = Pose3::from_parts(Translation3::identity(), m.rotation);
+    for (i, &yaw) in yaws.iter().enumerate() {
+        let half = Pose3::from_parts(
+            Translation3::identity(),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.5 * yaw),
+        );
+        if i > 0 {
+            seeds.push(from * (half * m * half));
+        }
+        seeds.push(from * (half * still * half));
+    }
+    seeds
+}
+
+/// [`align`] from the best of several starts. The first seed (the guess)
+/// is fitted on the coarsest level alone and scored by its consensus with
+/// that level as a fraction of the sweep's points ([`consensus`]); when
+/// that fraction is below `(1 − min_gain)·expected` (`expected`: what the
+/// last sweeps scored, `None` on the first), every other seed is fitted and
+/// scored the same way, and one replaces the guess only if it explains
+/// `min_gain` more of the sweep: a prior that is right stays in charge, and
+/// costs one coarse fit. The full alignment runs from the winner. Returns
+/// it with the winner's consensus fraction.
+pub fn align_wide(
+    map: &LocalMap,
+    source: &[Vector3<f64>],
+    seeds: &[Pose3],
+    params: &IcpParams,
+    min_gain: f64,
+    expected: Option<f64>,
+) -> Option<(Alignment, f64)> {
+    let (first, rest) = seeds.split_first()?;
+    let Some(level) = map.levels.first() else {
+        return align(map, source, first, params).map(|a| (a, 0.0));
+    };
+    let src = thin(
+        &voxel_downsample(source.iter().copied(), level.voxel),
+        params.max_points,
+    );
+    let n = src.len().max(1) as f64;
+    let score = |seed: &Pose3| -> Option<(Pose3, f64)> {
+        let fit = fit_level(level, &src, *seed, params.iterations)?;
+        Some((fit.pose, consensus(level, &src, &fit.pose) / n))
+    };
+    let base = score(first);
+    let good = match (base, expected) {
+        (Some(b), Some(e)) => b.1 >= (1.0 - min_gain) * e,
+        _ => false,
+    };
+    let mut start = (*first, base.map_or(0.0, |b| b.1));
+    if !good && !rest.is_empty() {
+        let mut best: Option<(Pose3, f64)> = None;
+        for seed in rest {
+            if let Some((p, c)) = score(seed)
+                && best.is_none_or(|b| c > b.1)
+            {
+                best = Some((p, c));
+            }
+        }
+        match (base, best) {
+            (Some(b), Some(w)) if w.1 > b.1 + min_gain * b.1.max(expected.unwrap_or(0.0)) => {
+                start = w
+            }
+            (None, Some(w)) => start = w,
+            _ => {}
+        }
+    }
+    align(map, source, &start.0, params).map(|a| (a, start.1))
 }
 
 /// The registration's memory: the down-sampled points of the last `window`
@@ -449,6 +603,13 @@ impl SweepWindow {
         initial: &Pose3,
         pose_of: impl Fn(u32) -> Option<Pose3>,
     ) -> Option<Alignment> {
+        let map = self.local_map(pose_of)?;
+        align(&map, prepared, initial, &self.params)
+    }
+
+    /// The local map of the remembered sweeps, each placed with
+    /// `pose_of(index)` (`None`: left out); `None` if none is placed.
+    pub fn local_map(&self, pose_of: impl Fn(u32) -> Option<Pose3>) -> Option<LocalMap> {
         let clouds: Vec<(Pose3, &[Vector3<f64>])> = self
             .recent
             .iter()
@@ -457,8 +618,7 @@ impl SweepWindow {
         if clouds.is_empty() {
             return None;
         }
-        let map = LocalMap::build(&clouds, &self.params);
-        align(&map, prepared, initial, &self.params)
+        Some(LocalMap::build(&clouds, &self.params))
     }
 }
 

@@ -3,10 +3,7 @@
 use dpslam::config::Config;
 use std::path::PathBuf;
 
-/// The log mapped when none is given: the simulator's loop shipped in `data/`.
-pub const DEFAULT_LOG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/sim2d/sim2d.clf");
-
-/// The same log, embedded in the binary: `map2d` with no log maps it, so
+/// The shipped simulated loop (`data/sim2d`), embedded in the binary: `map2d` with no log maps it, so
 /// that a moved or installed binary needs no source tree.
 pub const EMBEDDED_LOG: &[u8] = include_bytes!("../../data/sim2d/sim2d.clf");
 

@@ -94,6 +94,8 @@ pub struct Map3dSummary {
     pub proposal_time_per_sweep_s: f64,
     /// Mean time of the filter step per sweep, s.
     pub filter_time_per_sweep_s: f64,
+    /// Mean wall time per sweep of each phase, s (see [`Map3dProfile`]).
+    pub profile: Map3dProfile,
     /// Sweeps whose alignment failed (the prior was used as is).
     pub proposal_fallbacks: usize,
     /// Mean correction of the proposal over the prior: translation, m.
@@ -129,6 +131,36 @@ pub struct Map3dSummary {
     pub seed: u64,
     /// Worker threads.
     pub threads: usize,
+}
+
+/// Mean wall time per sweep (s) of each phase of a 3-D run: reading and
+/// decoding, turning the points into the filter's beams, down-sampling for
+/// the alignment, building the local map, ICP, and the filter's phases
+/// (per step).
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct Map3dProfile {
+    /// Reading and decoding the sweep file.
+    pub read_s: f64,
+    /// Range filter and beam voxels (`sweep_to_scan`).
+    pub scan_s: f64,
+    /// Voxel down-sampling for the alignment.
+    pub prepare_s: f64,
+    /// Building the local map (voxel levels, normals).
+    pub local_map_s: f64,
+    /// ICP iterations.
+    pub icp_s: f64,
+    /// Filter: drawing samples.
+    pub predict_s: f64,
+    /// Filter: quick culling passes.
+    pub weigh_quick_s: f64,
+    /// Filter: full-trace passes.
+    pub weigh_full_s: f64,
+    /// Filter: resampling.
+    pub resample_s: f64,
+    /// Filter: map update.
+    pub update_s: f64,
+    /// Filter: pruning.
+    pub prune_s: f64,
 }
 
 /// Runs 3-D DP-SLAM on the sweeps of `input` and writes the run folder `out`.
@@ -186,8 +218,11 @@ pub fn run_map3d_observed(
     };
     let (scorer, backend_used) = crate::backend::make_scorer::<3, Pose3>(opts.backend, &cfg.gpu)?;
     slam.set_scorer(scorer)?;
+    let mut read_s = 0.0;
     for i in 0..paths.len() {
+        let t = Instant::now();
         let sweep = paths.read(i)?;
+        read_s += t.elapsed().as_secs_f64();
         let (stamp, prior) = match &prior_file {
             Some(v) => (v[i].t, Some(v[i].pose)),
             None => (paths.stamp(i).unwrap_or(i as f64), sweep.prior),
@@ -243,6 +278,23 @@ pub fn run_map3d_observed(
         time_per_sweep_s: (prop.align_s + prop.filter_s) / steps,
         proposal_time_per_sweep_s: prop.align_s / steps,
         filter_time_per_sweep_s: prop.filter_s / steps,
+        profile: {
+            let n = paths.len().max(1) as f64;
+            let f = prop.phases;
+            Map3dProfile {
+                read_s: read_s / n,
+                scan_s: prop.scan_s / n,
+                prepare_s: prop.prepare_s / n,
+                local_map_s: prop.local_map_s / steps,
+                icp_s: (prop.align_s - prop.local_map_s) / steps,
+                predict_s: f.predict_s / steps,
+                weigh_quick_s: f.weigh_quick_s / steps,
+                weigh_full_s: f.weigh_full_s / steps,
+                resample_s: f.resample_s / steps,
+                update_s: f.update_s / steps,
+                prune_s: f.prune_s / steps,
+            }
+        },
         proposal_fallbacks: prop.fallbacks,
         mean_correction_m: prop.correction_m / steps,
         mean_correction_deg: prop.correction_deg / steps,

@@ -27,7 +27,7 @@
 use super::{Estimate, check_input};
 use crate::config::{Config, Map3dConfig};
 use crate::dpmap::DpMap;
-use crate::filter::{ParticleFilter, Stamp, StepInput, StepStats};
+use crate::filter::{ParticleFilter, PhaseTimes, Stamp, StepInput, StepStats};
 use crate::geometry::{Pose, Pose3};
 use crate::icp::{IcpParams, SweepWindow};
 use crate::io::ply::VoxelPoint;
@@ -135,6 +135,14 @@ pub struct ProposalStats {
     /// Steps whose prior motion came from two prior poses (not constant
     /// velocity).
     pub prior_steps: usize,
+    /// Time spent turning sweeps into scans (range filter, beam voxels), s.
+    pub scan_s: f64,
+    /// Time spent down-sampling sweeps for the alignment, s.
+    pub prepare_s: f64,
+    /// Of `align_s`: time spent building the local map, s.
+    pub local_map_s: f64,
+    /// The filter's phases summed over the steps.
+    pub phases: PhaseTimes,
 }
 
 /// Online 3-D DP-SLAM.
@@ -150,6 +158,9 @@ pub struct Slam3d {
     prev_prior: Option<Pose3>,
     /// The best particle's last motion (previous robot frame).
     velocity: Pose3,
+    /// Recent consensus of aligned sweeps with their local maps (fraction
+    /// of points explained at the coarsest level; see `icp::align_wide`).
+    consensus: Option<f64>,
     stamps: Vec<f64>,
     stats: Vec<StepStats>,
     proposal: ProposalStats,
@@ -171,6 +182,7 @@ impl Slam3d {
             filter: None,
             prev_prior: None,
             velocity: Pose3::identity(),
+            consensus: None,
             stamps: Vec::new(),
             stats: Vec::new(),
             proposal: ProposalStats::default(),
@@ -204,7 +216,9 @@ impl Slam3d {
         let index = self.stamps.len();
         check_input::<3, Pose3>(index, stamp, prior.as_ref())?;
         let m = &self.cfg.map3d;
+        let t = std::time::Instant::now();
         let scan = sweep_to_scan(points, m);
+        self.proposal.scan_s += t.elapsed().as_secs_f64();
         if scan.beams.is_empty() {
             return Err(Error::Invalid(format!(
                 "sweep {index}: no usable points ({} read; all closer than map3d.min_range = {} m or not finite)",
@@ -215,7 +229,9 @@ impl Slam3d {
         self.points_per_sweep.push(points.len());
         self.beams_per_sweep.push(scan.beams.len());
         self.stamps.push(stamp);
+        let t = std::time::Instant::now();
         let prepared = self.window.prepare(points);
+        self.proposal.prepare_s += t.elapsed().as_secs_f64();
         match self.filter.as_mut() {
             None => self.start(prior, &scan),
             Some(filter) => {
@@ -240,9 +256,35 @@ impl Slam3d {
                     .take_while(|s| s.scan >= oldest)
                     .map(|s| (s.scan, s.pose))
                     .collect();
-                let alignment = self
-                    .window
-                    .align(&prepared, &guess, |j| recent.get(&j).copied());
+                let local = self.window.local_map(|j| recent.get(&j).copied());
+                self.proposal.local_map_s += t0.elapsed().as_secs_f64();
+                let seeds = crate::icp::search_seeds(
+                    &best,
+                    &guess,
+                    m.search_yaw_step_deg,
+                    m.search_yaw_max_deg,
+                );
+                let alignment = local
+                    .as_ref()
+                    .and_then(|map| {
+                        crate::icp::align_wide(
+                            map,
+                            &prepared,
+                            &seeds,
+                            self.window.params(),
+                            m.search_min_gain,
+                            self.consensus,
+                        )
+                    })
+                    .map(|(a, c)| {
+                        // A slowly moving reference: one poor sweep does
+                        // not lower the bar for the next.
+                        self.consensus = Some(match self.consensus {
+                            Some(e) => 0.7 * e + 0.3 * c,
+                            None => c,
+                        });
+                        a
+                    });
                 let aligned = match &alignment {
                     Some(a) => a.pose,
                     None => {
@@ -272,13 +314,20 @@ impl Slam3d {
                         )
                     })
                     .unwrap_or(Proposal::Motion);
+                let k = match (&proposal, m.matched_samples_per_particle) {
+                    (Proposal::Matched { .. }, k) if k > 0 => k,
+                    _ => self.cfg.filter.samples_per_particle,
+                };
+                filter.set_samples_per_particle(k);
                 let input = StepInput {
                     odometry: delta,
                     proposal,
                     scan: &scan,
                     index: index as u32,
                 };
-                self.stats.push(filter.step(&input));
+                let stats = filter.step(&input);
+                self.proposal.phases += stats.times;
+                self.stats.push(stats);
                 self.proposal.filter_s += t1.elapsed().as_secs_f64();
                 let new_best = filter.particles()[filter.best_index()].pose;
                 self.velocity = best.inverse().compose(&new_best);
@@ -299,6 +348,11 @@ impl Slam3d {
         let m = &self.cfg.map3d;
         let mut laser_cfg = self.cfg.laser.clone();
         laser_cfg.variance = m.variance;
+        if m.trace_sigmas > 0.0 {
+            let cells = m.trace_sigmas * m.variance.sqrt() / m.voxel_size;
+            laser_cfg.trace_past_cells = cells;
+            laser_cfg.max_error_cells = cells;
+        }
         let laser = LaserModel::new(&laser_cfg, m.voxel_size, m.max_range);
         let mut filter = ParticleFilter::new(
             self.cfg.filter.clone(),
@@ -310,6 +364,7 @@ impl Slam3d {
             0,
         );
         filter.set_map_update(&self.cfg.map);
+        filter.set_quick_culling(m.quick_culling);
         if let Some(sc) = self.scorer.take() {
             filter.set_scorer(sc);
         }
