@@ -554,7 +554,10 @@ mod tests {
 
     /// A room's walls as occupied points (map frame) and the endpoints a
     /// scan from `at` sees of them (robot frame), every few degrees.
-    fn room(at: &Pose2) -> (Vec<([f64; 2], f64)>, Vec<[f64; 2]>) {
+    /// Occupied points (map frame) with stop probabilities.
+    type Walls = Vec<([f64; 2], f64)>;
+
+    fn room(at: &Pose2) -> (Walls, Vec<[f64; 2]>) {
         let (w, h) = (6.0, 4.0);
         let mut walls = Vec::new();
         let step = 1.0 / 35.0;
