@@ -16,13 +16,13 @@
 //! limits the counts (3000 particles cost tens of seconds of set-up).
 
 use criterion::{BatchSize, BenchmarkId, Criterion, criterion_group, criterion_main};
-use dpslam::bench::rig::{
-    PreparedLog, maintain, moved_samples, prepare_log, score_particles, update_map,
-};
 use dpslam::config::Config;
 use dpslam::filter::{ParticleFilter, stream};
 use dpslam::geometry::Pose2;
 use dpslam::scorer::CpuScorer;
+use dpslam_bench::rig::{
+    PreparedLog, maintain, moved_samples, prepare_log, score_particles, update_map,
+};
 use rand::RngExt;
 use std::hint::black_box;
 use std::path::Path;

@@ -40,7 +40,12 @@ pub enum Change {
     Removed(NodeId),
     /// `child` was merged into its parent `into`: the child's observations now
     /// belong to `into` and replace `into`'s own where both have one.
-    Merged { child: NodeId, into: NodeId },
+    Merged {
+        /// The merged node.
+        child: NodeId,
+        /// Its parent, which takes over its observations.
+        into: NodeId,
+    },
 }
 
 /// Depth-first numbering of the live tree: the flat form used for ancestry tests.

@@ -32,6 +32,89 @@ pub struct Config {
     pub hierarchy: HierarchyConfig,
     /// The 2-D scan-matched proposal (`filter.proposal = "scan-matched"`).
     pub scan_match: ScanMatchConfig,
+    /// The GPU likelihood backend (`--features gpu`, `--backend gpu|auto`).
+    pub gpu: GpuConfig,
+}
+
+/// The arithmetic of the GPU likelihood shader (see `crate::gpu`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum GpuPrecision {
+    /// f64 where the adapter supports it (`SHADER_F64`), else f32.
+    #[default]
+    Auto,
+    /// f32: fastest on consumer GPUs (f64 there runs at 1/32–1/64 rate);
+    /// scores within ~2e-4 nats of the CPU's.
+    F32,
+    /// f64: scores equal the CPU's to ~1e-12, so runs follow the CPU's
+    /// trajectory; an error where the adapter lacks `SHADER_F64`.
+    F64,
+}
+
+impl GpuPrecision {
+    /// Every value, in the order of the command line's help.
+    pub const ALL: [GpuPrecision; 3] = [GpuPrecision::Auto, GpuPrecision::F32, GpuPrecision::F64];
+}
+
+/// The command-line spelling (`auto`, `f32`, `f64`), as serde writes it.
+impl std::fmt::Display for GpuPrecision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            GpuPrecision::Auto => "auto",
+            GpuPrecision::F32 => "f32",
+            GpuPrecision::F64 => "f64",
+        })
+    }
+}
+
+impl std::str::FromStr for GpuPrecision {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|p| p.to_string().eq_ignore_ascii_case(s.trim()))
+            .ok_or_else(|| Error::Config(format!("GPU precision {s:?}: expected auto, f32 or f64")))
+    }
+}
+
+/// The GPU likelihood backend's settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct GpuConfig {
+    /// Shader arithmetic (default `auto`: f64 where the adapter has it).
+    pub precision: GpuPrecision,
+    /// Caps the size of each storage binding holding the map, bytes (at
+    /// least 256); 0: the adapter's own limit. For testing maps split over
+    /// several bindings.
+    pub max_binding: u64,
+}
+
+/// Hierarchical SLAM (dissertation ch. 8; Eliazar & Parr, NIPS 2005): the
+/// filter of `[filter]` runs over windows of `window` processed scans, each
+/// on a fresh map, and a second particle filter over whole windows keeps the
+/// global map, drawing each window's trajectory from the low-level particles.
+/// Defaults are the DP-SLAM 0.1.1 release's where it has them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HierarchyConfig {
+    /// Run hierarchically (`map2d --hierarchical` sets it).
+    pub enabled: bool,
+    /// Processed scans per low-level window (release: 40).
+    pub window: usize,
+    /// High-level particles (release: 50).
+    pub particles: usize,
+    /// Window trajectories drawn per high-level particle per window.
+    pub samples_per_particle: usize,
+    /// Range-error variance of the high-level laser model, m² (release:
+    /// 0.17, σ ≈ 0.41 m: a window's trajectory is scored as a whole, and its
+    /// own small errors must not make every sample improbable).
+    pub variance: f64,
+    /// Std of the perturbation of each drawn trajectory's start, in x and y,
+    /// in cells (release: 0.8).
+    pub perturb_xy_cells: f64,
+    /// Std of the perturbation of its heading, rad (release: 0.025).
+    pub perturb_theta: f64,
 }
 
 /// The 2-D scan-matched proposal ([`crate::scan_match`]): a correlative
@@ -98,33 +181,6 @@ pub enum ProposalKind {
     /// Each particle's scan match against its own map view, fused with the
     /// motion model (`[scan_match]`).
     ScanMatched,
-}
-
-/// Hierarchical SLAM (dissertation ch. 8; Eliazar & Parr, NIPS 2005): the
-/// filter of `[filter]` runs over windows of `window` processed scans, each
-/// on a fresh map, and a second particle filter over whole windows keeps the
-/// global map, drawing each window's trajectory from the low-level particles.
-/// Defaults are the DP-SLAM 0.1.1 release's where it has them.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct HierarchyConfig {
-    /// Run hierarchically (`map2d --hierarchical` sets it).
-    pub enabled: bool,
-    /// Processed scans per low-level window (release: 40).
-    pub window: usize,
-    /// High-level particles (release: 50).
-    pub particles: usize,
-    /// Window trajectories drawn per high-level particle per window.
-    pub samples_per_particle: usize,
-    /// Range-error variance of the high-level laser model, m² (release:
-    /// 0.17, σ ≈ 0.41 m: a window's trajectory is scored as a whole, and its
-    /// own small errors must not make every sample improbable).
-    pub variance: f64,
-    /// Std of the perturbation of each drawn trajectory's start, in x and y,
-    /// in cells (release: 0.8).
-    pub perturb_xy_cells: f64,
-    /// Std of the perturbation of its heading, rad (release: 0.025).
-    pub perturb_theta: f64,
 }
 
 impl Default for HierarchyConfig {
@@ -396,6 +452,7 @@ impl Default for Config {
             motion_learning: MotionLearningConfig::default(),
             hierarchy: HierarchyConfig::default(),
             scan_match: ScanMatchConfig::default(),
+            gpu: GpuConfig::default(),
         }
     }
 }

@@ -32,14 +32,19 @@ pub enum Error {
     /// Malformed or inconsistent input data.
     #[error("{}:{location}: {reason}", path.display())]
     Parse {
+        /// The file.
         path: PathBuf,
+        /// Where in it (line, message index, ...).
         location: Location,
+        /// What is wrong.
         reason: String,
     },
     /// An operating-system I/O failure on a path.
     #[error("{}: {source}", path.display())]
     Io {
+        /// The path.
         path: PathBuf,
+        /// The operating system's error.
         #[source]
         source: std::io::Error,
     },

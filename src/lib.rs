@@ -12,9 +12,10 @@
 //! radians, right-handed; 2-D poses are `x, y, θ` in the map frame (θ
 //! counter-clockwise from +x); 3-D poses are `nalgebra::Isometry3<f64>` with z up.
 
+#![warn(missing_docs)]
+
 pub mod ancestry;
 pub mod backend;
-pub mod bench;
 pub mod config;
 pub mod dpmap;
 pub mod error;

@@ -89,7 +89,7 @@ impl Ranges2d<'_> {
         if !(self.angle_min.is_finite() && self.angle_increment.is_finite()) {
             return Err("the laser reading's angles are not finite".into());
         }
-        if self.max_range.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+        if self.max_range.is_nan() || self.max_range <= 0.0 {
             return Err(format!(
                 "the laser reading's maximum range {} is not positive",
                 self.max_range

@@ -89,6 +89,13 @@ pub trait Scorer<const D: usize, P: Pose<D>>: Send + Sync {
         None
     }
 
+    /// Problems met while scoring that the run should report (e.g. a device
+    /// error after which the GPU scorer fell back to the CPU); empty when
+    /// none.
+    fn warnings(&self) -> Vec<String> {
+        Vec::new()
+    }
+
     /// For each candidate, the sum over the beams of `subset` of the beam
     /// log-likelihood ([`LaserModel::beam_log_likelihood`] with `trace`).
     fn score(

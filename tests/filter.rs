@@ -1,7 +1,7 @@
 //! Filter-level behaviour on the shipped simulated log.
 
-use dpslam::bench::rig::prepare_log;
 use dpslam::config::{Config, MapConfig};
+use dpslam_bench::rig::prepare_log;
 use std::path::Path;
 
 /// Free path length (m) held by the tree root's entries: where the shared

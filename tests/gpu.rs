@@ -16,13 +16,13 @@
 //! trajectories.
 #![cfg(feature = "gpu")]
 
-use dpslam::backend::bench::{Fixture, FixturePose, FixtureSpec, fixture2d, fixture3d};
 use dpslam::backend::{Backend, make_scorer};
 use dpslam::filter::StepInput;
 use dpslam::geometry::{Pose, Pose2, Pose3};
 use dpslam::gpu::{ENTRY_CHUNKS, GpuOptions, GpuPrecision, GpuScorer, HEADER_CHUNKS};
 use dpslam::laser_model::Trace;
 use dpslam::scorer::{BeamSubset, CpuScorer, Scorer};
+use dpslam_bench::fixtures::{Fixture, FixturePose, FixtureSpec, fixture2d, fixture3d};
 
 /// Largest per-candidate |gpu − cpu| allowed in each precision.
 fn tolerance(p: GpuPrecision) -> f64 {
@@ -409,11 +409,12 @@ fn trait_path_equals_try_score_and_candidates_far_outside_score_finitely() {
 
 #[test]
 fn make_scorer_gpu_opens_a_device_and_auto_prefers_it() {
-    let (s, used) = make_scorer::<3, Pose3>(Backend::Gpu).expect("lavapipe present");
+    let (s, used) =
+        make_scorer::<3, Pose3>(Backend::Gpu, &Default::default()).expect("lavapipe present");
     assert_eq!(s.name(), "gpu");
     // "gpu f64 on llvmpipe (…)": what run.json records.
     assert!(used.starts_with("gpu f") && used.contains(" on "), "{used}");
-    let (_, used) = make_scorer::<2, Pose2>(Backend::Auto).unwrap();
+    let (_, used) = make_scorer::<2, Pose2>(Backend::Auto, &Default::default()).unwrap();
     assert!(used.starts_with("gpu"), "{used}");
 }
 

@@ -43,6 +43,27 @@ pub struct RunArgs {
     pub threads: Option<usize>,
 }
 
+/// `DPSLAM_GPU_PRECISION` (`auto`, `f32`, `f64`) and `DPSLAM_GPU_MAX_BINDING`
+/// (bytes) override the configuration's `[gpu]` section: the command line
+/// reads the environment so that the library never does.
+fn gpu_settings_from_env(cfg: &mut Config) -> dpslam::Result<()> {
+    if let Ok(v) = std::env::var("DPSLAM_GPU_PRECISION") {
+        cfg.gpu.precision = v.parse().map_err(|_| {
+            dpslam::Error::Gpu(format!(
+                "DPSLAM_GPU_PRECISION is {v:?}: expected auto, f32 or f64"
+            ))
+        })?;
+    }
+    if let Ok(v) = std::env::var("DPSLAM_GPU_MAX_BINDING") {
+        cfg.gpu.max_binding = v.trim().parse().map_err(|_| {
+            dpslam::Error::Gpu(format!(
+                "DPSLAM_GPU_MAX_BINDING is {v:?}: expected a size in bytes"
+            ))
+        })?;
+    }
+    Ok(())
+}
+
 /// Loads the config file (if any) and applies the flags over it.
 pub fn build_config(run: &RunArgs, particles: Option<usize>) -> dpslam::Result<Config> {
     let (file, seed, threads) = (run.config.as_ref(), run.seed, run.threads);
@@ -59,6 +80,7 @@ pub fn build_config(run: &RunArgs, particles: Option<usize>) -> dpslam::Result<C
     if let Some(t) = threads {
         cfg.threads = t;
     }
+    gpu_settings_from_env(&mut cfg)?;
     cfg.validate()?;
     if cfg.threads > 0 {
         // Ignore the error if a pool already exists (only one global pool per process).
@@ -107,8 +129,18 @@ pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
         )?
         .0
     } else {
-        dpslam::pipeline::map2d::run_map2d_with(&log, &a.out, &cfg, a.backend)?
+        let mut progress = super::progress::Progress::new("map2d");
+        let s = dpslam::pipeline::map2d::run_map2d_observed(
+            &log,
+            &a.out,
+            &cfg,
+            a.backend,
+            &mut |done, total| progress.update(done, total),
+        )?;
+        progress.finish();
+        s
     };
+    super::progress::print_warnings(&s.warnings);
     println!(
         "map2d: {} scans ({} processed), {} particles, {:.1} s wall, peak {:.0} MiB -> {}",
         s.scans,

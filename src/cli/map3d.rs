@@ -1,7 +1,7 @@
 //! `dpslam map3d`: 3-D voxel DP-SLAM with 6-DoF poses on a directory of sweeps.
 
 use dpslam::config::Config;
-use dpslam::pipeline::map3d::{DEFAULT_PARTICLES_3D, Map3dOptions, run_map3d_with};
+use dpslam::pipeline::map3d::{DEFAULT_PARTICLES_3D, Map3dOptions, run_map3d_observed};
 use std::path::{Path, PathBuf};
 
 /// The sweeps mapped when none are given: the 3-D simulator's sequence shipped in `data/`.
@@ -74,7 +74,17 @@ pub fn run(a: Map3dArgs) -> dpslam::Result<()> {
         points: a.points,
         backend: a.backend,
     };
-    let s = run_map3d_with(&input, &a.out, &cfg, poses.as_deref(), &opts)?;
+    let mut progress = super::progress::Progress::new("map3d");
+    let s = run_map3d_observed(
+        &input,
+        &a.out,
+        &cfg,
+        poses.as_deref(),
+        &opts,
+        &mut |done, total| progress.update(done, total),
+    )?;
+    progress.finish();
+    super::progress::print_warnings(&s.warnings);
     println!(
         "map3d: {} sweeps, {} particles, {:.0} beams/sweep, {:.2} s/sweep, {:.1} s wall, \
          peak {:.0} MiB, {} occupied voxels -> {}",

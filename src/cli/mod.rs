@@ -1,11 +1,11 @@
 //! Command-line definitions and dispatch. Each subcommand lives in its own file
 //! and calls into the library.
 
-mod bench;
 mod eval;
 mod map2d;
 mod map3d;
 mod perturb;
+mod progress;
 mod simulate;
 
 use clap::{Parser, Subcommand};
@@ -33,9 +33,6 @@ enum Command {
     /// Accuracy metrics.
     #[command(subcommand)]
     Eval(eval::EvalCommand),
-    /// Benchmarks: accuracy suite, scaling with particles, likelihood backends.
-    #[command(subcommand)]
-    Bench(bench::BenchCommand),
 }
 
 /// Runs one parsed command line.
@@ -47,6 +44,5 @@ pub fn run(cli: Cli) -> dpslam::Result<()> {
         Command::Simulate3d(a) => simulate::run3d(a),
         Command::Perturb(a) => perturb::run(a),
         Command::Eval(c) => eval::run(c),
-        Command::Bench(c) => bench::run(c),
     }
 }

@@ -5,7 +5,7 @@
 //! invocation per (candidate, beam) running `shaders/likelihood.wgsl`: it
 //! walks the beam (Amanatides–Woo, in cell units relative to the sensor's
 //! cell), resolves each crossed cell for the candidate's particle from the
-//! flattened DP-map ([`flatten`]) and the depth-first numbering, and writes
+//! flattened DP-map (`flatten`) and the depth-first numbering, and writes
 //! the beam likelihood. The host reads the per-beam values back once,
 //! applies the floor and the log in f64 and sums them per candidate.
 //!
@@ -19,7 +19,7 @@
 //!
 //! Uploads per call: the candidates (144 B each), the beams of the subset
 //! (64 B each) and 64 B of parameters. The map is mirrored on the host
-//! ([`mirror`]) and only the bricks changed since the last call are
+//! (`mirror`) and only the bricks changed since the last call are
 //! flattened and copied, when [`DpMap::version`] changes (once per filter
 //! step, not once per culling pass); the numbering only when it changes.
 //! Buffers only grow.
@@ -34,7 +34,7 @@ pub(crate) mod flatten;
 pub(crate) mod mirror;
 
 use crate::ancestry::Numbering;
-pub use crate::backend::GpuPrecision;
+pub use crate::config::GpuPrecision;
 use crate::dpmap::DpMap;
 use crate::geometry::Pose;
 use crate::laser_model::Trace;
@@ -43,7 +43,6 @@ use crate::{Error, Result};
 use bytemuck::{Pod, Zeroable};
 use mirror::{Delta, Mirror};
 use std::ops::Range;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 const SHADER_BODY: &str = include_str!("../../shaders/likelihood.wgsl");
@@ -78,25 +77,11 @@ pub struct GpuOptions {
 }
 
 impl GpuOptions {
-    /// The options in `DPSLAM_GPU_PRECISION` (`auto`, `f32`, `f64`; default
-    /// `auto`) and `DPSLAM_GPU_MAX_BINDING` (bytes, default: the adapter's
-    /// limit).
-    pub fn from_env() -> Result<Self> {
-        Ok(Self {
-            precision: GpuPrecision::from_env()?,
-            max_binding: Self::max_binding_from_env()?,
-        })
-    }
-
-    /// The limit in `DPSLAM_GPU_MAX_BINDING` (bytes), if set.
-    pub fn max_binding_from_env() -> Result<Option<u64>> {
-        match std::env::var("DPSLAM_GPU_MAX_BINDING") {
-            Err(_) => Ok(None),
-            Ok(v) => v.trim().parse::<u64>().map(Some).map_err(|_| {
-                Error::Gpu(format!(
-                    "DPSLAM_GPU_MAX_BINDING is {v:?}: expected a size in bytes"
-                ))
-            }),
+    /// The options of the configuration's `[gpu]` section.
+    pub fn from_config(gpu: &crate::config::GpuConfig) -> Self {
+        Self {
+            precision: gpu.precision,
+            max_binding: (gpu.max_binding > 0).then_some(gpu.max_binding),
         }
     }
 }
@@ -376,7 +361,8 @@ pub struct GpuScorer<const D: usize> {
     state: Mutex<State>,
     fallback: CpuScorer<D>,
     adapter: String,
-    warned: AtomicBool,
+    /// The first device error, after which calls fell back to the CPU.
+    failure: std::sync::Mutex<Option<String>>,
     last: Mutex<CallStats>,
 }
 
@@ -401,12 +387,12 @@ fn gpu_err(what: &str, e: impl std::fmt::Display) -> Error {
 }
 
 impl<const D: usize> GpuScorer<D> {
-    /// A scorer on the first Vulkan adapter; `WGPU_BACKEND` (e.g. `gl`)
-    /// overrides the backends searched, `WGPU_ADAPTER_NAME` picks an adapter,
-    /// `DPSLAM_GPU_PRECISION` the precision (default `auto`) and
-    /// `DPSLAM_GPU_MAX_BINDING` caps the map's bindings ([`GpuOptions`]).
+    /// A scorer on the first Vulkan adapter with the default options
+    /// (precision `auto`, the adapter's binding limit); wgpu's
+    /// `WGPU_BACKEND` (e.g. `gl`) overrides the backends searched and
+    /// `WGPU_ADAPTER_NAME` picks an adapter.
     pub fn new() -> Result<Self> {
-        Self::with_options(GpuOptions::from_env()?)
+        Self::with_options(GpuOptions::default())
     }
 
     /// A scorer on the first Vulkan adapter (as [`GpuScorer::new`]) with the
@@ -574,7 +560,7 @@ impl<const D: usize> GpuScorer<D> {
             state: Mutex::new(state),
             fallback: CpuScorer::new(),
             adapter: format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
-            warned: AtomicBool::new(false),
+            failure: std::sync::Mutex::new(None),
             last: Mutex::default(),
         })
     }
@@ -956,6 +942,11 @@ impl<const D: usize, P: Pose<D>> Scorer<D, P> for GpuScorer<D> {
         Some(self.totals())
     }
 
+    fn warnings(&self) -> Vec<String> {
+        let failure = self.failure.lock().unwrap_or_else(|p| p.into_inner());
+        failure.iter().cloned().collect()
+    }
+
     fn score(
         &self,
         ctx: &ScoreContext<'_, D, P>,
@@ -966,9 +957,10 @@ impl<const D: usize, P: Pose<D>> Scorer<D, P> for GpuScorer<D> {
         match self.try_score(ctx, candidates, subset, trace) {
             Ok(v) => v,
             Err(e) => {
-                if !self.warned.swap(true, Ordering::Relaxed) {
-                    eprintln!("dpslam: {e}; scoring on the CPU instead");
-                }
+                self.failure
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .get_or_insert_with(|| format!("{e}; scored on the CPU from then on"));
                 // The device may be in any state now: rebuild the map next time.
                 self.invalidate();
                 self.fallback.score(ctx, candidates, subset, trace)

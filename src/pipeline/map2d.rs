@@ -76,7 +76,8 @@ pub struct Map2dSummary {
     /// the whole map at every step); absent on the CPU.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub gpu_transfers: Option<crate::scorer::Transfers>,
-    /// Problems with the input worth a look (also printed on stderr).
+    /// Problems with the input or the backend worth a look (the CLI prints
+    /// them on stderr).
     pub warnings: Vec<String>,
     /// Seed.
     pub seed: u64,
@@ -202,8 +203,18 @@ pub fn run_filter2d(
     cfg: &Config,
     backend: crate::backend::Backend,
 ) -> Result<FilterRun2d> {
+    run_filter2d_observed(log, cfg, backend, &mut super::no_progress)
+}
+
+/// [`run_filter2d`], reporting progress in bytes of the log read.
+pub fn run_filter2d_observed(
+    log: &Path,
+    cfg: &Config,
+    backend: crate::backend::Backend,
+    progress: super::Progress<'_>,
+) -> Result<FilterRun2d> {
     let mut slam = Slam2d::new(cfg.clone())?;
-    let (scorer, backend_used) = crate::backend::make_scorer::<2, Pose2>(backend)?;
+    let (scorer, backend_used) = crate::backend::make_scorer::<2, Pose2>(backend, &cfg.gpu)?;
     slam.set_scorer(scorer)?;
     let survey = RangeSurvey::of_log(log)?;
     let sensor_max = survey.sensor_max(cfg.laser.trust_declared_max_range);
@@ -211,7 +222,7 @@ pub fn run_filter2d(
     let mut reader = open_log2d(log)?;
     let format = reader.format();
     slam.set_mount(sensor_mount(cfg, format));
-    let bar = super::progress_bar(reader.total_bytes(), "map2d");
+    let total = reader.total_bytes();
     let (mut first_time, mut last_time) = (None, None);
     while let Some(item) = reader.next() {
         let s: LaserScan2d = item?;
@@ -222,9 +233,8 @@ pub fn run_filter2d(
         }
         slam.add_scan(t, s.odometry, &s.as_ranges())
             .map_err(|e| Error::in_file(log, format!("line {}: {e}", s.line)))?;
-        bar.set_position(reader.bytes_read());
+        progress(reader.bytes_read(), total);
     }
-    bar.finish_and_clear();
     if slam.scans() == 0 {
         return Err(Error::in_file(log, "no laser scans"));
     }
@@ -249,8 +259,19 @@ pub fn run_map2d_with(
     cfg: &Config,
     backend: crate::backend::Backend,
 ) -> Result<Map2dSummary> {
+    run_map2d_observed(log, out, cfg, backend, &mut super::no_progress)
+}
+
+/// [`run_map2d_with`], reporting progress in bytes of the log read.
+pub fn run_map2d_observed(
+    log: &Path,
+    out: &Path,
+    cfg: &Config,
+    backend: crate::backend::Backend,
+    progress: super::Progress<'_>,
+) -> Result<Map2dSummary> {
     let start = Instant::now();
-    let run = run_filter2d(log, cfg, backend)?;
+    let run = run_filter2d_observed(log, cfg, backend, progress)?;
     let rows: Vec<(f64, [f64; 7])> = run
         .slam
         .trajectory()?
@@ -261,7 +282,7 @@ pub fn run_map2d_with(
         slam,
         format,
         data_duration_s: duration,
-        warnings,
+        mut warnings,
         backend: backend_used,
     } = run;
     let f = &cfg.filter;
@@ -270,9 +291,7 @@ pub fn run_map2d_with(
     let wall = start.elapsed().as_secs_f64();
     let stats = slam.stats();
     let n_steps = stats.len().max(1) as f64;
-    for w in &warnings {
-        eprintln!("dpslam: warning: {w}");
-    }
+    warnings.extend(slam.scorer().map(|s| s.warnings()).unwrap_or_default());
     let summary = Map2dSummary {
         version: env!("CARGO_PKG_VERSION").to_string(),
         input: log.to_path_buf(),

@@ -122,6 +122,8 @@ pub struct Map3dSummary {
     /// the whole map at every step); absent on the CPU.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub gpu_transfers: Option<crate::scorer::Transfers>,
+    /// Problems worth a look (the CLI prints them on stderr).
+    pub warnings: Vec<String>,
     /// Seed.
     pub seed: u64,
     /// Worker threads.
@@ -147,6 +149,18 @@ pub fn run_map3d_with(
     poses: Option<&Path>,
     opts: &Map3dOptions,
 ) -> Result<Map3dSummary> {
+    run_map3d_observed(input, out, cfg, poses, opts, &mut super::no_progress)
+}
+
+/// [`run_map3d_with`], reporting progress in sweeps mapped.
+pub fn run_map3d_observed(
+    input: &Path,
+    out: &Path,
+    cfg: &Config,
+    poses: Option<&Path>,
+    opts: &Map3dOptions,
+    progress: super::Progress<'_>,
+) -> Result<Map3dSummary> {
     let start = Instant::now();
     let mut slam = Slam3d::new(cfg.clone())?;
     let m = &cfg.map3d;
@@ -169,9 +183,8 @@ pub fn run_map3d_with(
         }
         None => None,
     };
-    let (scorer, backend_used) = crate::backend::make_scorer::<3, Pose3>(opts.backend)?;
+    let (scorer, backend_used) = crate::backend::make_scorer::<3, Pose3>(opts.backend, &cfg.gpu)?;
     slam.set_scorer(scorer)?;
-    let bar = super::progress_bar(paths.len() as u64, "map3d");
     for (i, path) in paths.iter().enumerate() {
         let sweep = read_sweep(path)?;
         let (stamp, prior) = match &prior_file {
@@ -180,9 +193,8 @@ pub fn run_map3d_with(
         };
         slam.add_sweep(stamp, prior, &sweep.points)
             .map_err(|e| Error::in_file(path, e.to_string()))?;
-        bar.inc(1);
+        progress(i as u64 + 1, paths.len() as u64);
     }
-    bar.finish_and_clear();
 
     let trajectory = slam.trajectory()?;
     let rows: Vec<(f64, [f64; 7])> = trajectory
@@ -243,6 +255,7 @@ pub fn run_map3d_with(
         mean_after_full: stats.iter().map(|s| s.after_full as f64).sum::<f64>() / steps,
         backend: backend_used,
         gpu_transfers: filter.scorer().transfers(),
+        warnings: filter.scorer().warnings(),
         seed: cfg.seed,
         threads: rayon::current_num_threads(),
     };

@@ -36,19 +36,9 @@ pub fn create_out_dir(dir: &Path) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))
 }
 
-/// A progress bar on stderr, drawn only when stderr is a terminal.
-pub fn progress_bar(total: u64, what: &str) -> indicatif::ProgressBar {
-    use std::io::IsTerminal;
-    if !std::io::stderr().is_terminal() {
-        return indicatif::ProgressBar::hidden();
-    }
-    let pb = indicatif::ProgressBar::new(total);
-    pb.set_style(
-        indicatif::ProgressStyle::with_template(
-            "{spinner} {msg} [{elapsed_precise}] {wide_bar} {percent}% (eta {eta})",
-        )
-        .expect("valid template"),
-    );
-    pb.set_message(what.to_string());
-    pb
-}
+/// Reports the progress of a long run: called with `(done, total)` in the
+/// run's own units (bytes of a log read, sweeps mapped) as it goes.
+pub type Progress<'a> = &'a mut dyn FnMut(u64, u64);
+
+/// A [`Progress`] that reports nothing.
+pub fn no_progress(_done: u64, _total: u64) {}

@@ -1,12 +1,40 @@
-//! `dpslam bench ...`: benchmarks. SHARED FILE: the benchmark-suite engineer
-//! owns the `Accuracy` and `Scaling` variants, the GPU engineer owns the
-//! `Likelihood` variant. Edit only your own variant, its args struct and its
-//! dispatch arm; keep the rest.
+//! `dpslam-bench ...`: the development benchmarks (accuracy suite, scaling
+//! with particles, likelihood backends). Run from the repository root, after
+//! `cargo build --release` (the accuracy suite maps each dataset with the
+//! `dpslam` binary that sits next to this one):
+//! `cargo run --release -p dpslam-bench -- accuracy`.
 
-use clap::Subcommand;
+use clap::{Parser, Subcommand};
+use std::path::{Path, PathBuf};
+
+#[global_allocator]
+static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// The repository root (this crate's parent folder).
+fn repo() -> &'static Path {
+    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
+}
+
+/// dpslam's development benchmarks.
+#[derive(Parser, Debug)]
+#[command(name = "dpslam-bench", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: BenchCommand,
+}
+
+fn main() -> std::process::ExitCode {
+    match run(Cli::parse().command) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("dpslam-bench: error: {e}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
 
 #[derive(Subcommand, Debug)]
-pub enum BenchCommand {
+enum BenchCommand {
     /// Map every dataset with a reference, score it, write docs/RESULTS.md.
     Accuracy(AccuracyArgs),
     /// Time per filter iteration against particle count (one JSON object).
@@ -15,7 +43,7 @@ pub enum BenchCommand {
     Likelihood(LikelihoodArgs),
 }
 
-pub fn run(c: BenchCommand) -> dpslam::Result<()> {
+fn run(c: BenchCommand) -> dpslam::Result<()> {
     match c {
         BenchCommand::Accuracy(a) => run_accuracy(a),
         BenchCommand::Scaling(a) => run_scaling(a),
@@ -23,35 +51,35 @@ pub fn run(c: BenchCommand) -> dpslam::Result<()> {
     }
 }
 
-/// Options of `dpslam bench likelihood`.
+/// Options of `dpslam-bench likelihood`.
 #[derive(clap::Args, Debug)]
-pub struct LikelihoodArgs {
+struct LikelihoodArgs {
     /// Backends to time
     #[arg(long, value_enum, default_value = "both")]
-    pub backend: dpslam::backend::bench::BenchBackends,
+    backend: dpslam_bench::fixtures::BenchBackends,
     /// 2-D (hall mapped at 35 cells/m) or 3-D (voxel hall, 0.2 m voxels)
     #[arg(long, default_value_t = 2)]
-    pub dim: usize,
+    dim: usize,
     /// Candidate poses scored per iteration (the filter's particles × samples) [default: 500 in 2-D, 200 in 3-D]
     #[arg(long)]
-    pub particles: Option<usize>,
+    particles: Option<usize>,
     /// Beams per scan [default: 181 in 2-D, 2000 in 3-D]
     #[arg(long)]
-    pub beams: Option<usize>,
+    beams: Option<usize>,
     /// Time each backend for at least this long, s
     #[arg(long, default_value_t = 2.0)]
-    pub min_time: f64,
+    min_time: f64,
     /// Seed of the map-building filter and of the candidates
     #[arg(long, default_value_t = 1)]
-    pub seed: u64,
+    seed: u64,
     /// Arithmetic of the GPU shader (auto: f64 where the adapter has it)
     #[arg(long, value_enum, default_value_t = dpslam::backend::GpuPrecision::Auto)]
-    pub precision: dpslam::backend::GpuPrecision,
+    precision: dpslam::backend::GpuPrecision,
 }
 
 fn run_likelihood(a: LikelihoodArgs) -> dpslam::Result<()> {
     let three = a.dim == 3;
-    let spec = dpslam::backend::bench::LikelihoodBenchSpec {
+    let spec = dpslam_bench::fixtures::LikelihoodBenchSpec {
         dim: a.dim,
         candidates: a.particles.unwrap_or(if three { 200 } else { 500 }),
         beams: a.beams.unwrap_or(if three { 2000 } else { 181 }),
@@ -60,7 +88,7 @@ fn run_likelihood(a: LikelihoodArgs) -> dpslam::Result<()> {
         seed: a.seed,
         precision: a.precision,
     };
-    let report = dpslam::backend::bench::bench_likelihood(&spec)?;
+    let report = dpslam_bench::fixtures::bench_likelihood(&spec)?;
     println!(
         "{}",
         serde_json::to_string(&report).map_err(|e| dpslam::Error::Invalid(e.to_string()))?
@@ -68,63 +96,89 @@ fn run_likelihood(a: LikelihoodArgs) -> dpslam::Result<()> {
     Ok(())
 }
 
-/// Options of `dpslam bench accuracy`.
+/// Options of `dpslam-bench accuracy`.
 #[derive(clap::Args, Debug)]
-pub struct AccuracyArgs {
+struct AccuracyArgs {
     /// Short subset (the simulator and mit-csail, first 300 scans each): a smoke test
     #[arg(long)]
-    pub quick: bool,
+    quick: bool,
     /// Folder for the per-dataset runs [default: target/bench-accuracy]
     #[arg(long)]
-    pub out: Option<std::path::PathBuf>,
+    out: Option<std::path::PathBuf>,
     /// Particles [default: 50, or the config file's]
     #[arg(long)]
-    pub particles: Option<usize>,
+    particles: Option<usize>,
     /// Configuration file (TOML; see docs/CONFIG.md)
     #[arg(long)]
-    pub config: Option<std::path::PathBuf>,
+    config: Option<std::path::PathBuf>,
     /// Folder for RESULTS.md and results/*.png [default: docs]
     #[arg(long)]
-    pub docs: Option<std::path::PathBuf>,
+    docs: Option<std::path::PathBuf>,
     /// Shared datasets folder (holds carmen/) [default: ../shared/datasets]
     #[arg(long)]
-    pub datasets: Option<std::path::PathBuf>,
+    datasets: Option<std::path::PathBuf>,
     /// Run only these datasets (comma-separated names, e.g. sim2d,mit-csail)
     #[arg(long, value_delimiter = ',')]
-    pub only: Vec<String>,
+    only: Vec<String>,
     /// Seed of the odometry noise added to the corrected logs
-    #[arg(long, default_value_t = dpslam::bench::accuracy::DEFAULT_NOISE_SEED)]
-    pub noise_seed: u64,
+    #[arg(long, default_value_t = dpslam_bench::accuracy::DEFAULT_NOISE_SEED)]
+    noise_seed: u64,
     /// Worker threads (0 = all cores)
     #[arg(long)]
-    pub threads: Option<usize>,
+    threads: Option<usize>,
     /// Skip the particle-scaling measurement (100-3000 particles on the
     /// simulated log, ~3 min on 2 cores) that follows the datasets
     #[arg(long)]
-    pub no_scaling: bool,
+    no_scaling: bool,
     /// Learn each log's motion model first (N EM rounds, as `map2d
     /// --learn-motion N`; the wall time includes them)
     #[arg(long, default_value_t = 0, value_name = "N")]
-    pub learn_motion: usize,
+    learn_motion: usize,
 }
 
 /// A benchmark's configuration: as `map2d`'s, without a `--seed` flag (the
 /// seed is the config file's or the default).
 fn bench_config(
-    config: Option<std::path::PathBuf>,
+    config: Option<PathBuf>,
     threads: Option<usize>,
     particles: Option<usize>,
 ) -> dpslam::Result<dpslam::config::Config> {
-    let run = super::map2d::RunArgs {
-        seed: None,
-        config,
-        threads,
+    let mut cfg = match &config {
+        Some(p) => dpslam::config::Config::from_toml_file(p)?,
+        None => dpslam::config::Config::default(),
     };
-    super::map2d::build_config(&run, particles)
+    if let Some(n) = particles {
+        cfg.filter.particles = n;
+    }
+    if let Some(t) = threads {
+        cfg.threads = t;
+    }
+    cfg.validate()?;
+    if cfg.threads > 0 {
+        // Ignore the error if a pool already exists (only one global pool per process).
+        let _ = rayon::ThreadPoolBuilder::new()
+            .num_threads(cfg.threads)
+            .build_global();
+    }
+    Ok(cfg)
+}
+
+/// The `dpslam` binary next to this one (cargo builds both into one folder).
+fn mapper() -> dpslam::Result<PathBuf> {
+    let exe = std::env::current_exe().map_err(|e| dpslam::Error::Invalid(e.to_string()))?;
+    let m = exe.with_file_name(format!("dpslam{}", std::env::consts::EXE_SUFFIX));
+    if m.is_file() {
+        Ok(m)
+    } else {
+        Err(dpslam::Error::Invalid(format!(
+            "{} not found: build it first (`cargo build --release`)",
+            m.display()
+        )))
+    }
 }
 
 fn run_accuracy(a: AccuracyArgs) -> dpslam::Result<()> {
-    use dpslam::bench::accuracy::{AccuracyOptions, run_accuracy};
+    use dpslam_bench::accuracy::{AccuracyOptions, run_accuracy};
     let cfg = bench_config(a.config.clone(), a.threads, a.particles)?;
     let mut opts = AccuracyOptions::new(cfg);
     opts.quick = a.quick;
@@ -133,7 +187,7 @@ fn run_accuracy(a: AccuracyArgs) -> dpslam::Result<()> {
     opts.learn_motion = a.learn_motion;
     opts.command = std::env::args().collect::<Vec<_>>().join(" ");
     // Each dataset in a `dpslam map2d` process of its own: per-run peak memory.
-    opts.mapper = std::env::current_exe().ok();
+    opts.mapper = Some(mapper()?);
     if a.no_scaling || a.quick {
         opts.scaling = None;
     }
@@ -157,46 +211,44 @@ fn run_accuracy(a: AccuracyArgs) -> dpslam::Result<()> {
     Ok(())
 }
 
-/// Options of `dpslam bench scaling`.
+/// Options of `dpslam-bench scaling`.
 #[derive(clap::Args, Debug)]
-pub struct ScalingArgs {
+struct ScalingArgs {
     /// Particle counts to time (comma-separated)
     #[arg(long, value_delimiter = ',', default_value = "100,300,1000,3000")]
-    pub particles: Vec<usize>,
+    particles: Vec<usize>,
     /// Processed scans that build the map before timing
     #[arg(long, default_value_t = 20)]
-    pub scans: usize,
+    scans: usize,
     /// Steps timed per particle count
     #[arg(long, default_value_t = 5)]
-    pub steps: usize,
+    steps: usize,
     /// 2-D log [default: the shipped simulated loop]
     #[arg(long)]
-    pub log: Option<std::path::PathBuf>,
+    log: Option<std::path::PathBuf>,
     /// Where to write the plot (time-vs-particles.png) [default: docs/results]
     #[arg(long)]
-    pub plot_dir: Option<std::path::PathBuf>,
+    plot_dir: Option<std::path::PathBuf>,
     /// Configuration file (TOML; see docs/CONFIG.md)
     #[arg(long)]
-    pub config: Option<std::path::PathBuf>,
+    config: Option<std::path::PathBuf>,
     /// Worker threads (0 = all cores)
     #[arg(long)]
-    pub threads: Option<usize>,
+    threads: Option<usize>,
 }
 
 fn run_scaling(a: ScalingArgs) -> dpslam::Result<()> {
-    use dpslam::bench::scaling::{ScalingOptions, run_scaling, write_scaling_plot};
+    use dpslam_bench::scaling::{ScalingOptions, run_scaling, write_scaling_plot};
     let cfg = bench_config(a.config.clone(), a.threads, None)?;
     let opts = ScalingOptions {
-        log: a.log.unwrap_or_else(|| super::map2d::DEFAULT_LOG.into()),
+        log: a.log.unwrap_or_else(|| repo().join("data/sim2d/sim2d.clf")),
         particles: a.particles,
         warmup_scans: a.scans,
         timed_steps: a.steps,
         cfg,
     };
     let report = run_scaling(&opts)?;
-    let dir = a
-        .plot_dir
-        .unwrap_or_else(|| concat!(env!("CARGO_MANIFEST_DIR"), "/docs/results").into());
+    let dir = a.plot_dir.unwrap_or_else(|| repo().join("docs/results"));
     std::fs::create_dir_all(&dir).map_err(|e| dpslam::Error::io(&dir, e))?;
     write_scaling_plot(&report, &dir.join("time-vs-particles.png"))?;
     println!(

@@ -6,7 +6,7 @@
 //! - **mit-csail**: the raw log with the Kümmerle et al. relations.
 //! - **perturbed corrected logs** (fr079, aces and the others): the corrected
 //!   poses are the truth; the odometry is the truth corrupted by
-//!   [`crate::sim::perturb::perturb_log`] with the seed and noise model of
+//!   [`dpslam::sim::perturb::perturb_log`] with the seed and noise model of
 //!   [`AccuracyOptions`], written into the run folder (same seed, same files).
 //!
 //! Truth is paired with the estimate by time stamp when the log's stamps are
@@ -16,18 +16,18 @@
 use super::plot::{PALETTE, Plot, Series};
 use super::report::{AccuracyReport, Matching, RunResult, Skipped, results_markdown};
 use super::scaling::{ScalingOptions, ScalingReport, run_scaling, write_scaling_plot};
-use crate::config::Config;
-use crate::eval::ate::{AteOptions, align_se2, associate, evaluate_ate};
-use crate::eval::relations::{
+use dpslam::config::Config;
+use dpslam::eval::ate::{AteOptions, align_se2, associate, evaluate_ate};
+use dpslam::eval::relations::{
     RELATION_TIME_TOLERANCE_S, Relation, evaluate_relations, read_relations,
 };
-use crate::geometry::xyt;
-use crate::io::log2d::open_log2d;
-use crate::io::tum::{Stamped, read_tum};
-use crate::pipeline::learn_motion::run_map2d_learning;
-use crate::pipeline::map2d::run_map2d;
-use crate::sim::perturb::{NoiseModel, perturb_log};
-use crate::{Error, Result};
+use dpslam::geometry::xyt;
+use dpslam::io::log2d::open_log2d;
+use dpslam::io::tum::{Stamped, read_tum};
+use dpslam::pipeline::learn_motion::run_map2d_learning;
+use dpslam::pipeline::map2d::run_map2d;
+use dpslam::sim::perturb::{NoiseModel, perturb_log};
+use dpslam::{Error, Result};
 use nalgebra::{Isometry3, Point3, Vector3};
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
@@ -128,9 +128,9 @@ pub struct AccuracyOptions {
 
 impl AccuracyOptions {
     /// Defaults: out `target/bench-accuracy`, docs `docs`, datasets
-    /// `../shared/datasets`, all relative to the crate root.
+    /// `../shared/datasets`, all relative to the repository root.
     pub fn new(cfg: Config) -> Self {
-        let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+        let root = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
         let scaling_cfg = cfg.clone();
         Self {
             quick: false,
@@ -268,7 +268,7 @@ pub fn truncate_log(input: &Path, out: &Path, scans: usize) -> Result<usize> {
         }
         writeln!(w, "{line}").expect("write to Vec");
     }
-    crate::pipeline::write_atomic(out, &w)?;
+    dpslam::pipeline::write_atomic(out, &w)?;
     Ok(n)
 }
 
@@ -369,7 +369,7 @@ pub fn shrink_map(src: &Path, dst: &Path, max_side: u32) -> Result<()> {
     let mut png = Vec::new();
     out.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
         .map_err(|e| Error::Invalid(format!("PNG encoding failed: {e}")))?;
-    crate::pipeline::write_atomic(dst, &png)
+    dpslam::pipeline::write_atomic(dst, &png)
 }
 
 /// Maps one dataset and scores it. Files: `<out>/<name>/` (input copies,
@@ -436,7 +436,7 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
         None => {
             let reset = reset_peak_memory();
             let s = if opts.learn_motion > 0 {
-                let backend = crate::backend::Backend::Cpu;
+                let backend = dpslam::backend::Backend::Cpu;
                 run_map2d_learning(
                     &log,
                     &run_dir,
@@ -449,7 +449,7 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
             } else {
                 run_map2d(&log, &run_dir, &opts.cfg)?
             };
-            (s, crate::pipeline::peak_memory_mib().filter(|_| reset))
+            (s, dpslam::pipeline::peak_memory_mib().filter(|_| reset))
         }
     };
     if opts.learn_motion > 0 {
@@ -582,7 +582,7 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
         trajectory_plot: Some(format!("results/{traj_name}")),
         note: (!notes.is_empty()).then(|| notes.join("; ")),
     };
-    crate::pipeline::write_json(&dir.join("result.json"), &result)?;
+    dpslam::pipeline::write_json(&dir.join("result.json"), &result)?;
     Ok(result)
 }
 
@@ -618,8 +618,8 @@ fn map2d_process(
     config: &Path,
     cfg: &Config,
     learn_motion: usize,
-) -> Result<crate::pipeline::map2d::Map2dSummary> {
-    crate::pipeline::write_atomic(config, cfg.to_toml().as_bytes())?;
+) -> Result<dpslam::pipeline::map2d::Map2dSummary> {
+    dpslam::pipeline::write_atomic(config, cfg.to_toml().as_bytes())?;
     let mut command = std::process::Command::new(exe);
     command
         .arg("map2d")
@@ -658,7 +658,7 @@ pub fn run_scaling_into(so: &ScalingOptions, dir: &Path) -> Result<ScalingReport
     let r = run_scaling(so)?;
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     write_scaling_plot(&r, &dir.join("time-vs-particles.png"))?;
-    crate::pipeline::write_json(&dir.join("scaling.json"), &r)?;
+    dpslam::pipeline::write_json(&dir.join("scaling.json"), &r)?;
     Ok(r)
 }
 
@@ -753,8 +753,8 @@ pub fn run_accuracy(opts: &AccuracyOptions) -> Result<AccuracyReport> {
         scaling,
     };
     std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
-    crate::pipeline::write_json(&opts.out.join("results.json"), &report)?;
-    crate::pipeline::write_atomic(
+    dpslam::pipeline::write_json(&opts.out.join("results.json"), &report)?;
+    dpslam::pipeline::write_atomic(
         &opts.docs.join("RESULTS.md"),
         results_markdown(&report).as_bytes(),
     )?;
@@ -778,11 +778,11 @@ mod tests {
             })
             .collect();
         // The same path in a frame rotated by 1 rad and shifted far away.
-        let g = crate::geometry::pose2(576.0, -40.0, 1.0);
+        let g = dpslam::geometry::pose2(576.0, -40.0, 1.0);
         let moved: Vec<Stamped> = target
             .iter()
             .map(|p| {
-                let (x, y, th) = xyt(&(g * crate::geometry::pose2(
+                let (x, y, th) = xyt(&(g * dpslam::geometry::pose2(
                     p.pose.translation.x,
                     p.pose.translation.y,
                     p.pose.rotation.angle(),

@@ -1,16 +1,16 @@
 //! The benchmark harness: table writer, plot writer, log preparation and an
 //! end-to-end `bench accuracy --quick` on the simulator.
 
-use dpslam::bench::accuracy::{AccuracyOptions, odometry_trajectory, run_accuracy, truncate_log};
-use dpslam::bench::plot::{BACKGROUND, PALETTE, Plot, Series};
-use dpslam::bench::report::{Matching, RESULT_COLUMNS, RunResult, results_table};
-use dpslam::bench::rig::prepare_log;
 use dpslam::config::Config;
 use dpslam::eval::relations::RelationsReport;
+use dpslam_bench::accuracy::{AccuracyOptions, odometry_trajectory, run_accuracy, truncate_log};
+use dpslam_bench::plot::{BACKGROUND, PALETTE, Plot, Series};
+use dpslam_bench::report::{Matching, RESULT_COLUMNS, RunResult, results_table};
+use dpslam_bench::rig::prepare_log;
 use std::path::{Path, PathBuf};
 
 fn sim_log() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sim2d/sim2d.clf")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/sim2d/sim2d.clf")
 }
 
 fn run(name: &str, relations: bool, matching: Option<Matching>) -> RunResult {
@@ -187,7 +187,7 @@ fn quick_accuracy_on_the_simulator() {
     let report = run_accuracy(&opts).unwrap();
     assert_eq!(report.runs.len(), 1, "{:?}", report.skipped);
     let r = &report.runs[0];
-    assert_eq!(r.scans, dpslam::bench::accuracy::QUICK_SCANS);
+    assert_eq!(r.scans, dpslam_bench::accuracy::QUICK_SCANS);
     assert_eq!(r.particles, 10);
     assert_eq!(r.matching, Some(Matching::Time));
     let ate = r.ate_rmse_m.unwrap();
@@ -215,7 +215,7 @@ fn quick_accuracy_on_the_simulator() {
 fn accuracy_with_motion_learning_in_a_mapper_process() {
     let dir = tempfile::tempdir().unwrap();
     let mut opts = quick_sim2d(dir.path());
-    opts.mapper = Some(env!("CARGO_BIN_EXE_dpslam").into());
+    opts.mapper = Some(dpslam_binary());
     opts.learn_motion = 1;
     let report = run_accuracy(&opts).unwrap();
     assert_eq!(report.runs.len(), 1, "{:?}", report.skipped);
@@ -233,4 +233,21 @@ fn accuracy_with_motion_learning_in_a_mapper_process() {
     )
     .unwrap();
     assert!(r.wall_time_s > run["wall_time_s"].as_f64().unwrap());
+}
+
+/// The `dpslam` binary of this build (`cargo test --workspace` builds it
+/// into the folder above this test's `deps/`).
+fn dpslam_binary() -> std::path::PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    let bin = exe
+        .parent()
+        .and_then(Path::parent)
+        .unwrap()
+        .join(format!("dpslam{}", std::env::consts::EXE_SUFFIX));
+    assert!(
+        bin.is_file(),
+        "{} is missing: run the tests with `cargo test --workspace` (it builds the binary)",
+        bin.display()
+    );
+    bin
 }

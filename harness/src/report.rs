@@ -1,7 +1,7 @@
 //! Benchmark results as Markdown: the per-dataset table and `docs/RESULTS.md`.
 
 use super::scaling::ScalingReport;
-use crate::eval::relations::RelationsReport;
+use dpslam::eval::relations::RelationsReport;
 use serde::Serialize;
 
 /// How the truth trajectory was paired with the estimate for ATE.
@@ -383,7 +383,7 @@ fn scaling_section(sc: &ScalingReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bench::scaling::{ScalingPoint, summarize};
+    use crate::scaling::{ScalingPoint, summarize};
 
     #[test]
     fn scaling_section_reports_the_measured_ratio_and_slope() {

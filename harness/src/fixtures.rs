@@ -9,14 +9,14 @@
 //! moved 6 m ahead, where their beams leave the mapped area; the hall is
 //! longer than the laser's range, so some beams are "no return".
 
-use crate::config::{FilterConfig, LaserConfig};
-use crate::filter::{ParticleFilter, StepInput};
-use crate::geometry::{Pose, Pose2, Pose3, pose2, xyt};
-use crate::laser_model::{LaserModel, Trace};
-use crate::motion_model::MotionModel;
-use crate::scan::{Beam, Scan};
-use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
-use crate::{Error, Result};
+use dpslam::config::{FilterConfig, LaserConfig};
+use dpslam::filter::{ParticleFilter, StepInput};
+use dpslam::geometry::{Pose, Pose2, Pose3, pose2, xyt};
+use dpslam::laser_model::{LaserModel, Trace};
+use dpslam::motion_model::MotionModel;
+use dpslam::scan::{Beam, Scan};
+use dpslam::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
+use dpslam::{Error, Result};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
@@ -409,7 +409,7 @@ pub struct LikelihoodBenchSpec {
     /// Seed.
     pub seed: u64,
     /// Arithmetic of the GPU shader.
-    pub precision: super::GpuPrecision,
+    pub precision: dpslam::backend::GpuPrecision,
 }
 
 fn time_path<const D: usize, P: Pose<D>>(
@@ -505,9 +505,9 @@ fn gpu_path<const D: usize, P: FixturePose<D>>(
     work: f64,
     results: &mut Vec<Vec<f64>>,
 ) -> Result<PathTiming> {
-    let gpu = crate::gpu::GpuScorer::<D>::with_options(crate::gpu::GpuOptions {
+    let gpu = dpslam::gpu::GpuScorer::<D>::with_options(dpslam::gpu::GpuOptions {
         precision: spec.precision,
-        max_binding: crate::gpu::GpuOptions::max_binding_from_env()?,
+        max_binding: max_binding_from_env()?,
     })?;
     // Through `try_score` once: a device failure must fail the bench, not
     // silently time the CPU fallback.
@@ -548,8 +548,22 @@ fn gpu_path<const D: usize, P: FixturePose<D>>(
     _work: f64,
     _results: &mut Vec<Vec<f64>>,
 ) -> Result<PathTiming> {
-    super::make_scorer::<D, P>(super::Backend::Gpu)?;
+    dpslam::backend::make_scorer::<D, P>(dpslam::backend::Backend::Gpu, &Default::default())?;
     Err(Error::Gpu("the GPU path is not compiled in".into()))
+}
+
+/// The limit in `DPSLAM_GPU_MAX_BINDING` (bytes), if set: the likelihood
+/// bench's way to time maps split over several bindings.
+#[cfg(feature = "gpu")]
+fn max_binding_from_env() -> Result<Option<u64>> {
+    match std::env::var("DPSLAM_GPU_MAX_BINDING") {
+        Err(_) => Ok(None),
+        Ok(v) => v.trim().parse::<u64>().map(Some).map_err(|_| {
+            Error::Gpu(format!(
+                "DPSLAM_GPU_MAX_BINDING is {v:?}: expected a size in bytes"
+            ))
+        }),
+    }
 }
 
 /// Builds the fixture for `spec.dim` (4 filter particles, 3 steps) and times

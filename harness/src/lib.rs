@@ -1,4 +1,6 @@
-//! Benchmarks: accuracy against references and speed against particle count.
+//! dpslam's development harness, out of the library's public API:
+//! benchmarks of accuracy against references and of speed against particle
+//! count, and the test fixtures of the GPU path.
 //!
 //! - [`accuracy`]: `map2d` on every dataset with a reference (relations,
 //!   truth trajectories, the simulator), scored and written up as
@@ -7,8 +9,11 @@
 //! - [`rig`]: a filter warmed up on a real log and the pieces of one step, for
 //!   timing (shared with `benches/iteration.rs`).
 //! - [`plot`], [`report`]: the PNG plots and the Markdown tables.
+//! - [`fixtures`]: maps and filters for the GPU tests and the likelihood
+//!   benchmark.
 
 pub mod accuracy;
+pub mod fixtures;
 pub mod plot;
 pub mod report;
 pub mod rig;

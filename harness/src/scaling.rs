@@ -9,8 +9,8 @@
 
 use super::plot::{PALETTE, Plot, Series};
 use super::rig::prepare_log;
-use crate::config::Config;
-use crate::{Error, Result};
+use dpslam::config::Config;
+use dpslam::{Error, Result};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;

@@ -5,7 +5,7 @@
 //! series names and axis titles belong in the caption of the document that
 //! shows the plot (colours are fixed per series, see [`PALETTE`]).
 
-use crate::{Error, Result};
+use dpslam::{Error, Result};
 use image::{Rgb, RgbImage};
 use std::path::Path;
 
@@ -232,7 +232,7 @@ impl Plot {
         let mut png = Vec::new();
         img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
             .map_err(|e| Error::Invalid(format!("PNG encoding failed: {e}")))?;
-        crate::pipeline::write_atomic(path, &png)
+        dpslam::pipeline::write_atomic(path, &png)
     }
 }
 

@@ -2,16 +2,16 @@
 //! (same motion gate and beam thinning as `map2d`), a filter warmed up on the
 //! first of them, and the pieces of one step that can be timed on their own.
 
-use crate::config::Config;
-use crate::filter::{ParticleFilter, Sample, StepInput};
-use crate::geometry::{Pose, Pose2};
-use crate::io::log2d::open_log2d;
-use crate::laser_model::{LaserModel, Trace};
-use crate::pipeline::map2d::sensor_mount;
-use crate::scan::Scan;
-use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
-use crate::slam::slam2d::{moved_enough, new_filter, to_scan, usable_range};
-use crate::{Error, Result};
+use dpslam::config::Config;
+use dpslam::filter::{ParticleFilter, Sample, StepInput};
+use dpslam::geometry::{Pose, Pose2};
+use dpslam::io::log2d::open_log2d;
+use dpslam::laser_model::{LaserModel, Trace};
+use dpslam::pipeline::map2d::sensor_mount;
+use dpslam::scan::Scan;
+use dpslam::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
+use dpslam::slam::slam2d::{moved_enough, new_filter, to_scan, usable_range};
+use dpslam::{Error, Result};
 use std::path::Path;
 
 /// One filter step's input.
