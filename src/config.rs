@@ -30,6 +30,8 @@ pub struct Config {
     pub motion_learning: MotionLearningConfig,
     /// Hierarchical SLAM (dissertation ch. 8), 2-D.
     pub hierarchy: HierarchyConfig,
+    /// The 2-D scan-matched proposal (`filter.proposal = "scan-matched"`).
+    pub scan_match: ScanMatchConfig,
     /// The GPU likelihood backend (`--features gpu`, `--backend gpu|auto`).
     pub gpu: GpuConfig,
     /// Topics read from a ROS bag input (`--scan-topic`, `--odom-topic`;
@@ -116,6 +118,72 @@ pub struct HierarchyConfig {
     pub perturb_xy_cells: f64,
     /// Std of the perturbation of its heading, rad (release: 0.025).
     pub perturb_theta: f64,
+}
+
+/// The 2-D scan-matched proposal ([`crate::scan_match`]): a correlative
+/// search of each particle's guess against a likelihood field of its map
+/// view, fused with the motion model. Lengths in metres, angles in radians.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ScanMatchConfig {
+    /// Search window half-width in x and y around the odometry guess, m.
+    pub window_xy: f64,
+    /// Search window half-width in heading, rad (0.2618 = 15°).
+    pub window_theta: f64,
+    /// Finest field cell, in DP-map cells.
+    pub field_cells: f64,
+    /// Coarse field cells are this many fine cells wide.
+    pub coarse_factor: usize,
+    /// Coarse poses refined at the finest level.
+    pub candidates: usize,
+    /// Endpoints matched per scan at most (evenly thinned).
+    pub max_beams: usize,
+    /// Std of the likelihood field around an occupied cell, m.
+    pub sigma: f64,
+    /// Endpoint likelihood far from anything seen (the field's floor, 0..1).
+    pub floor: f64,
+    /// The score surface's weights are `exp(Δscore / temperature)`: beams
+    /// are not independent, and a temperature above 1 keeps the match's
+    /// covariance from being overconfident.
+    pub temperature: f64,
+    /// Added to the match's x and y variance: std floor, m.
+    pub min_std_xy: f64,
+    /// Added to the match's heading variance: std floor, rad.
+    pub min_std_theta: f64,
+    /// A match with fewer endpoints than this fraction on cells the view
+    /// has seen is no match: the particle samples the motion model.
+    pub min_overlap: f64,
+}
+
+impl Default for ScanMatchConfig {
+    fn default() -> Self {
+        Self {
+            window_xy: 0.5,
+            window_theta: 15f64.to_radians(),
+            field_cells: 2.0,
+            coarse_factor: 4,
+            candidates: 3,
+            max_beams: 90,
+            sigma: 0.05,
+            floor: 0.1,
+            temperature: 3.0,
+            min_std_xy: 0.01,
+            min_std_theta: 0.002,
+            min_overlap: 0.3,
+        }
+    }
+}
+
+/// Where a 2-D step's samples come from (`filter.proposal`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum ProposalKind {
+    /// The motion model around the odometry (the release).
+    #[default]
+    Motion,
+    /// Each particle's scan match against its own map view, fused with the
+    /// motion model (`[scan_match]`).
+    ScanMatched,
 }
 
 impl Default for HierarchyConfig {
@@ -306,6 +374,9 @@ pub struct FilterConfig {
     pub min_rotation: f64,
     /// Resampling scheme.
     pub resampling: Resampling,
+    /// Proposal of the 2-D filter: `"motion"` or `"scan-matched"` (3-D
+    /// always matches with ICP, see `map3d`).
+    pub proposal: ProposalKind,
 }
 
 /// How the next particle set is drawn from the weighted samples.
@@ -419,6 +490,7 @@ impl Default for Config {
             map3d: Map3dConfig::default(),
             motion_learning: MotionLearningConfig::default(),
             hierarchy: HierarchyConfig::default(),
+            scan_match: ScanMatchConfig::default(),
             gpu: GpuConfig::default(),
             bag: Default::default(),
         }
@@ -435,6 +507,7 @@ impl Default for FilterConfig {
             min_translation: 0.05,
             min_rotation: 0.03,
             resampling: Resampling::Multinomial,
+            proposal: ProposalKind::default(),
         }
     }
 }

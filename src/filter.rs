@@ -22,7 +22,7 @@ use crate::dpmap::{DpMap, storage_order};
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
 use crate::motion_model::MotionModel;
-use crate::proposal::Proposal;
+use crate::proposal::{MatchContext, Proposal, ScanRegistration};
 use crate::raycast::CellKey;
 use crate::scan::Scan;
 use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer, map_in_preorder};
@@ -57,6 +57,19 @@ pub struct Sample<P> {
     pub pose: P,
     /// Index of the particle it was drawn from.
     pub parent: usize,
+}
+
+/// The outcome of [`ParticleFilter::predict`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Prediction<P> {
+    /// The drawn samples, `samples_per_particle` per particle in order.
+    pub samples: Vec<Sample<P>>,
+    /// Per sample, `ln p_motion − ln q` (nats) to add to its scan
+    /// log-likelihood ([`Proposal::log_ratio`]); empty for the motion
+    /// proposal, whose weights are the likelihoods.
+    pub log_ratio: Vec<f64>,
+    /// Particles whose samples came from a scan match.
+    pub matched: usize,
 }
 
 /// The outcome of [`ParticleFilter::weigh`].
@@ -113,6 +126,8 @@ pub struct StepStats {
     pub best_log_likelihood: f64,
     /// Distinct parent particles among the new particles.
     pub distinct_parents: usize,
+    /// Particles whose samples came from a scan match this step.
+    pub matched: usize,
     /// Live ancestry nodes after pruning.
     pub tree_nodes: usize,
     /// Entries in the DP-map after pruning.
@@ -192,6 +207,8 @@ pub struct ParticleFilter<const D: usize, P: Pose<D>> {
     /// so its lookups hit cells already cached, and one set of caches is
     /// held instead of two), a set of their own behind another scorer.
     caches: Arc<CpuScorer<D>>,
+    /// Registers scans for [`Proposal::ScanMatched`] (none: motion model).
+    matcher: Option<Arc<dyn ScanRegistration<D, P>>>,
 }
 
 impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
@@ -267,6 +284,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             scorer: cpu.clone(),
             quick_culling: true,
             caches: cpu,
+            matcher: None,
         }
     }
 
@@ -328,6 +346,11 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         self.scorer = Arc::from(scorer);
     }
 
+    /// Sets the scan registration that [`Proposal::ScanMatched`] steps use.
+    pub fn set_scan_matcher(&mut self, matcher: Box<dyn ScanRegistration<D, P>>) {
+        self.matcher = Some(Arc::from(matcher));
+    }
+
     /// The scan scorer in use.
     pub fn scorer(&self) -> &dyn Scorer<D, P> {
         self.scorer.as_ref()
@@ -338,9 +361,13 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         self.steps += 1;
         let mut times = PhaseTimes::default();
         let t = std::time::Instant::now();
-        let samples = self.predict(&input.odometry, &input.proposal);
+        let Prediction {
+            samples,
+            log_ratio,
+            matched,
+        } = self.predict(&input.odometry, &input.proposal, input.scan);
         times.predict_s = t.elapsed().as_secs_f64();
-        let weights = self.weigh(&samples, input.scan);
+        let weights = self.weigh_corrected(&samples, &log_ratio, input.scan);
         times.weigh_quick_s = weights.quick_s;
         times.weigh_full_s = weights.full_s;
         let t = std::time::Instant::now();
@@ -364,6 +391,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
                 .cloned()
                 .fold(f64::NEG_INFINITY, f64::max),
             distinct_parents,
+            matched,
             tree_nodes: self.tree.len(),
             map_entries: self.map.entry_count(),
         }
@@ -371,30 +399,97 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
 
     /// Predict: `samples_per_particle` poses per particle from `proposal`
     /// (for the odometry motion `odometry`, previous robot frame), each
-    /// particle on its own RNG stream for this step.
-    pub fn predict(&self, odometry: &P, proposal: &Proposal<P>) -> Vec<Sample<P>> {
+    /// particle on its own RNG stream for this step. A
+    /// [`Proposal::ScanMatched`] step first registers `scan` against each
+    /// particle's view (the filter's [`ScanRegistration`]).
+    pub fn predict(
+        &self,
+        odometry: &P,
+        proposal: &Proposal<P>,
+        scan: &Scan<D, P>,
+    ) -> Prediction<P> {
         let k = self.cfg.samples_per_particle;
         let step = self.steps;
         let seed = self.seed;
         let motion = self.motion.as_ref();
-        self.particles
+        let per_particle: Option<Vec<Proposal<P>>> = match (proposal, &self.matcher) {
+            (Proposal::ScanMatched, Some(m)) => {
+                let groups: Vec<NodeId> = self
+                    .particles
+                    .iter()
+                    .map(|p| match self.tree.parent(p.node) {
+                        crate::ancestry::NO_NODE => p.node,
+                        parent => parent,
+                    })
+                    .collect();
+                Some(m.propose(&MatchContext {
+                    map: &self.map,
+                    numbering: &self.numbering,
+                    groups: &groups,
+                    particles: &self.particles,
+                    odometry,
+                    scan,
+                }))
+            }
+            _ => None,
+        };
+        let of = |i: usize| per_particle.as_ref().map_or(proposal, |v| &v[i]);
+        // The motion proposal's densities cancel: its weights stay the bare
+        // likelihoods, bit for bit as in the release.
+        let weighted = !matches!(proposal, Proposal::Motion);
+        let drawn: Vec<(Sample<P>, f64)> = self
+            .particles
             .par_iter()
             .enumerate()
             .flat_map_iter(|(i, p)| {
                 let mut rng = stream(seed, step, i as u64);
+                let q = of(i);
                 (0..k)
-                    .map(|_| Sample {
-                        pose: proposal.sample(motion, &p.pose, odometry, &mut rng),
-                        parent: i,
+                    .map(|_| {
+                        let pose = q.sample(motion, &p.pose, odometry, &mut rng);
+                        let r = if weighted {
+                            q.log_ratio(motion, &p.pose, odometry, &pose)
+                        } else {
+                            0.0
+                        };
+                        (Sample { pose, parent: i }, r)
                     })
                     .collect::<Vec<_>>()
             })
-            .collect()
+            .collect();
+        let matched = per_particle.as_ref().map_or(
+            usize::from(matches!(proposal, Proposal::Matched { .. })) * self.particles.len(),
+            |v| {
+                v.iter()
+                    .filter(|q| matches!(q, Proposal::Matched { .. }))
+                    .count()
+            },
+        );
+        let (samples, log_ratio): (Vec<_>, Vec<_>) = drawn.into_iter().unzip();
+        Prediction {
+            samples,
+            log_ratio: if weighted { log_ratio } else { Vec::new() },
+            matched,
+        }
     }
 
     /// Weigh: scores every sample against its parent particle's map view, in
     /// culling passes (quick, then full); culled samples get −∞.
     pub fn weigh(&self, samples: &[Sample<P>], scan: &Scan<D, P>) -> Weights {
+        self.weigh_corrected(samples, &[], scan)
+    }
+
+    /// As [`ParticleFilter::weigh`], each sample's score starting from
+    /// `log_ratio[i]` (nats; [`Prediction::log_ratio`], empty: 0) so that
+    /// culling and resampling see the importance weight, not only the
+    /// likelihood.
+    pub fn weigh_corrected(
+        &self,
+        samples: &[Sample<P>],
+        log_ratio: &[f64],
+        scan: &Scan<D, P>,
+    ) -> Weights {
+        let start = |i: usize| log_ratio.get(i).copied().unwrap_or(0.0);
         let passes = self.cfg.passes.min(scan.beams.len().max(1));
         let ctx = ScoreContext {
             map: &self.map,
@@ -413,7 +508,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             }
             let t = std::time::Instant::now();
             for &i in &alive {
-                scores[i] = 0.0;
+                scores[i] = start(i);
             }
             for pass in 0..passes {
                 let candidates: Vec<Candidate<P>> = alive

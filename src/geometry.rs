@@ -44,6 +44,11 @@ pub trait Pose<const D: usize>: Copy + Send + Sync + Debug + PartialEq + 'static
     /// (rad). 2-D: `xi = [x, y, θ]`; 3-D: `xi = [ωx, ωy, ωz, tx, ty, tz]`
     /// (ω a small-angle axis vector). `xi.len()` is [`Pose::DOF`].
     fn perturbed(&self, delta: &Self, xi: &[f64]) -> Self;
+    /// The inverse of [`Pose::perturbed`] with the identity motion: the
+    /// body-frame perturbation `xi` ([`Pose::DOF`] components, same order
+    /// and units) with `self · ε(xi) = other`. 2-D: exact; 3-D: ω is the
+    /// rotation's axis-angle vector, exact for angles below π.
+    fn perturbation_to(&self, other: &Self) -> Vec<f64>;
     /// All components are finite.
     fn is_finite(&self) -> bool {
         self.to_tum().iter().all(|v| v.is_finite())
@@ -116,6 +121,10 @@ impl Pose<2> for Pose2 {
     fn perturbed(&self, delta: &Self, xi: &[f64]) -> Self {
         self * delta * pose2(xi[0], xi[1], xi[2])
     }
+    fn perturbation_to(&self, other: &Self) -> Vec<f64> {
+        let e = self.inverse() * other;
+        vec![e.translation.x, e.translation.y, e.rotation.angle()]
+    }
 }
 
 impl Pose<3> for Pose3 {
@@ -168,6 +177,12 @@ impl Pose<3> for Pose3 {
             UnitQuaternion::from_scaled_axis(Vector3::new(xi[0], xi[1], xi[2])),
         );
         (self * delta).compose(&step)
+    }
+    fn perturbation_to(&self, other: &Self) -> Vec<f64> {
+        let e = self.inverse() * other;
+        let w = e.rotation.scaled_axis();
+        let t = e.translation.vector;
+        vec![w.x, w.y, w.z, t.x, t.y, t.z]
     }
 }
 

@@ -34,6 +34,7 @@ pub mod pipeline;
 pub mod proposal;
 pub mod raycast;
 pub mod scan;
+pub mod scan_match;
 pub mod scorer;
 pub mod sim;
 pub mod slam;

@@ -14,6 +14,25 @@ pub trait MotionModel<const D: usize, P: Pose<D>>: Send + Sync {
     /// A sample of the new robot pose (map frame) given the previous pose
     /// `prev` and the odometry motion `delta` expressed in the previous robot frame.
     fn sample(&self, prev: &P, delta: &P, rng: &mut Pcg64) -> P;
+
+    /// Log density (natural log) of drawing `sample` (map frame) from
+    /// `prev` for the odometry motion `delta`, in the coordinates of
+    /// [`Pose::perturbation_to`] from `prev · delta` (2-D `[x m, y m, θ
+    /// rad]`, 3-D `[ω rad, t m]`; the 2-D C/D/T coordinates have the same
+    /// density, their Jacobian being 1). The importance weight of a sample
+    /// drawn from another proposal is likelihood × this / proposal density.
+    /// `None`: the model has no density (e.g. [`Exact`]); samples are then
+    /// weighed by likelihood alone.
+    fn log_density(&self, _prev: &P, _delta: &P, _sample: &P) -> Option<f64> {
+        None
+    }
+}
+
+/// `ln N(x; 0, σ²)`.
+#[inline]
+pub fn normal_log_density(x: f64, sigma: f64) -> f64 {
+    const HALF_LN_TAU: f64 = 0.918_938_533_204_672_7;
+    -0.5 * (x / sigma) * (x / sigma) - sigma.ln() - HALF_LN_TAU
 }
 
 /// The motion exactly as given, without noise: for filters built only for
@@ -54,17 +73,70 @@ impl CdtModel {
     }
 }
 
-impl MotionModel<2, Pose2> for CdtModel {
-    fn sample(&self, prev: &Pose2, delta: &Pose2, rng: &mut Pcg64) -> Pose2 {
+impl CdtModel {
+    /// Means and stds of (D, C, T) for the odometry motion `delta`: `([D m,
+    /// C m, T rad], [σ_D m, σ_C m, σ_T rad])`.
+    pub fn components(&self, delta: &Pose2) -> ([f64; 3], [f64; 3]) {
         let m = &self.cfg;
         let (d, c, t) = cdt_of(delta);
         let lin = |k: [f64; 2]| k[0] * d + k[1] * t;
         let std = |k: [f64; 2], floor: f64| ((k[0] * d).abs() + (k[1] * t).abs()).max(floor);
+        (
+            [lin(m.mean_d), c + lin(m.mean_c), lin(m.mean_t)],
+            [
+                std(m.std_d, m.min_std_xy),
+                std(m.std_c, m.min_std_xy),
+                std(m.std_t, m.min_std_t),
+            ],
+        )
+    }
+
+    /// The model's motion linearised at its mean: mean `[x m, y m, θ rad]`
+    /// and covariance of the new pose in the previous robot frame, for
+    /// fusing with a scan match (the C/D/T components are independent
+    /// Gaussians; the pose is a smooth function of them).
+    pub fn local_gaussian(&self, delta: &Pose2) -> ([f64; 3], nalgebra::Matrix3<f64>) {
+        let ([d, c, t], [sd, sc, st]) = self.components(delta);
+        let p = Self::apply(&Pose2::identity(), d, c, t);
+        let (s, co) = (t / 2.0).sin_cos();
+        let j = nalgebra::Matrix3::new(
+            co,
+            -s,
+            0.5 * (-d * s - c * co),
+            s,
+            co,
+            0.5 * (d * co - c * s),
+            0.0,
+            0.0,
+            1.0,
+        );
+        let n =
+            nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(sd * sd, sc * sc, st * st));
+        let (x, y, th) = xyt(&p);
+        ([x, y, th], j * n * j.transpose())
+    }
+}
+
+impl MotionModel<2, Pose2> for CdtModel {
+    fn sample(&self, prev: &Pose2, delta: &Pose2, rng: &mut Pcg64) -> Pose2 {
+        let ([d, c, t], [sd, sc, st]) = self.components(delta);
         let mut n = || -> f64 { StandardNormal.sample(rng) };
-        let dd = lin(m.mean_d) + std(m.std_d, m.min_std_xy) * n();
-        let cc = c + lin(m.mean_c) + std(m.std_c, m.min_std_xy) * n();
-        let tt = lin(m.mean_t) + std(m.std_t, m.min_std_t) * n();
+        let dd = d + sd * n();
+        let cc = c + sc * n();
+        let tt = t + st * n();
         Self::apply(prev, dd, cc, tt)
+    }
+
+    fn log_density(&self, prev: &Pose2, delta: &Pose2, sample: &Pose2) -> Option<f64> {
+        let ([d, c, t], [sd, sc, st]) = self.components(delta);
+        // The sample's own (D, C, T): `apply` from the identity inverts
+        // exactly for turns inside (−π, π].
+        let (dd, cc, tt) = cdt_of(&(prev.inverse() * sample));
+        Some(
+            normal_log_density(dd - d, sd)
+                + normal_log_density(cc - c, sc)
+                + normal_log_density(crate::geometry::wrap_angle(tt - t), st),
+        )
     }
 }
 
@@ -190,6 +262,28 @@ impl MotionModel<3, crate::geometry::Pose3> for Gaussian6dModel {
         // inverses and products every sweep, and an unnormalised quaternion's
         // error grows geometrically along that chain.
         prev.compose(&noisy)
+    }
+
+    /// Density of the translation noise (previous robot frame) and of the
+    /// rotation noise's axis-angle vector. Against [`crate::proposal`]'s
+    /// body-frame coordinates the translation differs by a rotation
+    /// (Jacobian 1) and the rotation by a fixed left factor, whose
+    /// Jacobian is 1 up to O(θ²) for the small angles of one step.
+    fn log_density(
+        &self,
+        prev: &crate::geometry::Pose3,
+        delta: &crate::geometry::Pose3,
+        sample: &crate::geometry::Pose3,
+    ) -> Option<f64> {
+        let (st, sr) = self.stds(delta);
+        let local = prev.inverse() * sample;
+        let dt = local.translation.vector - delta.translation.vector;
+        let dr = (delta.rotation.inverse() * local.rotation).scaled_axis();
+        Some(
+            (0..3)
+                .map(|i| normal_log_density(dt[i], st) + normal_log_density(dr[i], sr))
+                .sum(),
+        )
     }
 }
 

@@ -9,9 +9,21 @@
 //! [`crate::icp`] makes one). The same type serves 2-D and 3-D: the
 //! perturbation lives in the body frame of the new pose, with
 //! [`Pose::DOF`] components ([`Pose::perturbed`]).
+//!
+//! [`Proposal::ScanMatched`] asks the filter to match the scan against each
+//! particle's own view of the map (a [`ScanRegistration`], 2-D:
+//! [`crate::scan_match`]) and to draw each particle's samples from its own
+//! fused Gaussian. Samples from any proposal but [`Proposal::Motion`] are
+//! weighed by likelihood × motion-prior density / proposal density
+//! ([`Proposal::log_ratio`]); with the motion proposal the two densities
+//! cancel and the weight is the likelihood, exactly as in the release.
 
+use crate::ancestry::{NodeId, Numbering};
+use crate::dpmap::DpMap;
+use crate::filter::Particle;
 use crate::geometry::Pose;
 use crate::motion_model::MotionModel;
+use crate::scan::Scan;
 use nalgebra::{DMatrix, DVector};
 use rand_distr::{Distribution, StandardNormal};
 use rand_pcg::Pcg64;
@@ -33,6 +45,35 @@ pub enum Proposal<P> {
         /// `[ω rad, t m]`).
         factor: DMatrix<f64>,
     },
+    /// Per particle, a scan match against that particle's own map view,
+    /// fused with the motion model (the filter's [`ScanRegistration`]; a
+    /// filter without one samples the motion model).
+    ScanMatched,
+}
+
+/// What a scan registration sees of one filter step.
+pub struct MatchContext<'a, const D: usize, P: Pose<D>> {
+    /// The shared DP-map.
+    pub map: &'a DpMap<D>,
+    /// Depth-first numbering of the tree, current for `map`.
+    pub numbering: &'a Numbering,
+    /// Per particle, the ancestry node its view is shared from: particles
+    /// with the same key differ only in their own last observation.
+    pub groups: &'a [NodeId],
+    /// The particles (map frame) before the step.
+    pub particles: &'a [Particle<P>],
+    /// Odometry motion of the step (previous robot frame).
+    pub odometry: &'a P,
+    /// The new scan.
+    pub scan: &'a Scan<D, P>,
+}
+
+/// Registers a scan against particles' map views: one proposal per
+/// particle ([`Proposal::Matched`] relative to that particle's pose, or
+/// [`Proposal::Motion`] where the match fails).
+pub trait ScanRegistration<const D: usize, P: Pose<D>>: Send + Sync {
+    /// One proposal per particle of `ctx.particles`, in order.
+    fn propose(&self, ctx: &MatchContext<'_, D, P>) -> Vec<Proposal<P>>;
 }
 
 impl<P> Proposal<P> {
@@ -62,12 +103,60 @@ impl<P> Proposal<P> {
         P: Pose<D>,
     {
         match self {
-            Proposal::Motion => motion.sample(prev, odometry, rng),
+            Proposal::Motion | Proposal::ScanMatched => motion.sample(prev, odometry, rng),
             Proposal::Matched { delta, factor } => {
                 let n = DVector::from_fn(P::DOF, |_, _| StandardNormal.sample(&mut *rng));
                 let xi = factor * n;
                 prev.perturbed(delta, xi.as_slice())
             }
+        }
+    }
+}
+
+impl<P> Proposal<P> {
+    /// Log density (natural log) of drawing `sample` (map frame) from this
+    /// proposal for a particle at `prev`, in the body-frame coordinates of
+    /// [`Pose::perturbation_to`]; `None` for the motion proposals (their
+    /// density is the motion model's).
+    pub fn log_density<const D: usize>(&self, prev: &P, sample: &P) -> Option<f64>
+    where
+        P: Pose<D>,
+    {
+        match self {
+            Proposal::Motion | Proposal::ScanMatched => None,
+            Proposal::Matched { delta, factor } => {
+                let mean = prev.compose(delta);
+                let xi = DVector::from_vec(mean.perturbation_to(sample));
+                let z = factor.solve_lower_triangular(&xi)?;
+                let log_det: f64 = (0..P::DOF).map(|i| factor[(i, i)].ln()).sum();
+                Some(
+                    -0.5 * z.norm_squared()
+                        - log_det
+                        - 0.5 * P::DOF as f64 * std::f64::consts::TAU.ln(),
+                )
+            }
+        }
+    }
+
+    /// `ln p_motion(sample) − ln q(sample)`: what the importance weight of
+    /// `sample` adds to its scan log-likelihood. 0 for the motion proposal
+    /// (the densities cancel) and for a motion model without a density.
+    pub fn log_ratio<const D: usize>(
+        &self,
+        motion: &dyn MotionModel<D, P>,
+        prev: &P,
+        odometry: &P,
+        sample: &P,
+    ) -> f64
+    where
+        P: Pose<D>,
+    {
+        match (
+            self.log_density::<D>(prev, sample),
+            motion.log_density(prev, odometry, sample),
+        ) {
+            (Some(q), Some(p)) => p - q,
+            _ => 0.0,
         }
     }
 }

@@ -2,7 +2,7 @@
 
 use super::{Estimate, check_input, fill_trajectory};
 use crate::ancestry::{NodeId, Numbering};
-use crate::config::{Config, FilterConfig, Motion2dConfig};
+use crate::config::{Config, FilterConfig, Motion2dConfig, ProposalKind};
 use crate::dpmap::DpMap;
 use crate::filter::{ParticleFilter, Stamp, StepInput, StepStats};
 use crate::geometry::{Pose2, pose2};
@@ -13,6 +13,7 @@ use crate::motion_learning::MotionSample;
 use crate::motion_model::CdtModel;
 use crate::proposal::Proposal;
 use crate::scan::{Beam, Ranges2d, Scan};
+use crate::scan_match::ScanMatcher2d;
 use crate::scorer::Scorer;
 use crate::{Error, Result};
 
@@ -85,9 +86,10 @@ pub fn new_filter(
     first: &Scan<2, Pose2>,
     index: u32,
 ) -> ParticleFilter<2, Pose2> {
-    let motion = Box::new(CdtModel {
+    let cdt = CdtModel {
         cfg: cfg.motion2d.clone(),
-    });
+    };
+    let motion = Box::new(cdt.clone());
     let mut filter = ParticleFilter::new(
         cfg.filter.clone(),
         laser,
@@ -98,7 +100,22 @@ pub fn new_filter(
         index,
     );
     filter.set_map_update(&cfg.map);
+    if cfg.filter.proposal == ProposalKind::ScanMatched {
+        filter.set_scan_matcher(Box::new(ScanMatcher2d::new(
+            cfg.scan_match.clone(),
+            cdt,
+            cfg.cell_size(),
+        )));
+    }
     filter
+}
+
+/// The proposal of a 2-D step under `cfg` (`filter.proposal`).
+pub fn proposal_of(cfg: &Config) -> Proposal<Pose2> {
+    match cfg.filter.proposal {
+        ProposalKind::Motion => Proposal::Motion,
+        ProposalKind::ScanMatched => Proposal::ScanMatched,
+    }
 }
 
 /// Renders `map` as the particle holding ancestry node `node` sees it.
@@ -302,7 +319,7 @@ impl Slam2d {
                     );
                     let input = StepInput {
                         odometry: delta,
-                        proposal: Proposal::Motion,
+                        proposal: proposal_of(&self.cfg),
                         scan: &scan,
                         index: index as u32,
                     };

@@ -1,0 +1,692 @@
+//! The 2-D scan-matched proposal (Grisetti et al., IEEE T-RO 2007,
+//! "improved proposal"; the wide search is Olson's correlative matcher,
+//! ICRA 2009).
+//!
+//! For each group of particles that share a map view (the children of one
+//! ancestry node: they differ only in their own last observation), the
+//! cells that view sees as occupied near the scan are rasterised into a
+//! likelihood field: per field cell, `occ · exp(−d²/2σ²)` of the nearest
+//! occupied cell, `occ = 1 − exp(−ρ·cell)` its stop probability. Each
+//! particle of the group then registers the scan's endpoints against that
+//! field around its own odometry guess `prev · odometry`, over the whole
+//! window (`±window_xy` m, `±window_theta` rad), in two levels: a coarse
+//! level whose cells hold the maximum over `coarse_factor`-times larger
+//! blocks (an upper bound of every finer translation inside, as in Olson's
+//! multi-resolution search) at coarse angle steps, then the finest level
+//! around the best `candidates` coarse poses. The score surface gives the
+//! mode and a covariance (Olson 2009, eq. 15: the weighted second moment of
+//! the evaluated poses), which is wide along a direction the scan does not
+//! constrain (a corridor's axis, open space). That Gaussian is fused with
+//! the C/D/T motion model's, linearised at its mean, and the particle's
+//! samples are drawn from the product ([`Proposal::Matched`]). Where too
+//! few endpoints fall near anything the view has seen (a new area, an
+//! empty map), the particle draws from the motion model instead.
+//!
+//! The match only places samples: their weights are the DP-map likelihood
+//! × motion prior / this proposal's density (see [`crate::proposal`]), so
+//! a poor match costs samples, not correctness.
+//!
+//! Frames: particle poses and the field in the map frame (m, rad); the
+//! fused Gaussian in the previous robot frame; the proposal's factor in the
+//! body frame of its mean.
+
+use crate::ancestry::NodeId;
+use crate::config::ScanMatchConfig;
+use crate::geometry::{Pose2, pose2, wrap_angle, xyt};
+use crate::motion_model::CdtModel;
+use crate::proposal::{MatchContext, Proposal, ScanRegistration};
+use nalgebra::{DMatrix, Matrix2, Matrix3, Vector3};
+use rayon::prelude::*;
+
+/// The scan-matched proposal of the 2-D filter.
+#[derive(Debug, Clone)]
+pub struct ScanMatcher2d {
+    cfg: ScanMatchConfig,
+    motion: CdtModel,
+    /// DP-map cell edge, m.
+    cell: f64,
+}
+
+impl ScanMatcher2d {
+    /// A matcher with settings `cfg`, fusing with `motion`, on a DP-map of
+    /// `cell`-metre cells.
+    pub fn new(cfg: ScanMatchConfig, motion: CdtModel, cell: f64) -> Self {
+        Self { cfg, motion, cell }
+    }
+
+    /// Edge of the finest field cell, m.
+    fn res(&self) -> f64 {
+        self.cfg.field_cells.max(1.0) * self.cell
+    }
+}
+
+/// A likelihood field over a box of the map frame.
+struct Field {
+    /// Map-frame corner of cell (0, 0), m.
+    origin: [f64; 2],
+    res: f64,
+    w: usize,
+    h: usize,
+    /// Per fine cell, the endpoint likelihood quantised to 0..=255.
+    fine: Vec<u8>,
+    /// Coarse cells are `f` fine cells wide.
+    f: usize,
+    cw: usize,
+    ch: usize,
+    /// Per coarse cell `c`, the maximum of the fine cells of blocks `c` and
+    /// `c + 1` (each axis): a fine translation anywhere in `[0, f·res)`
+    /// from the coarse pose keeps every endpoint inside.
+    coarse: Vec<u8>,
+}
+
+impl Field {
+    /// Rasterises `occupied` (map-frame centres, m, with stop
+    /// probabilities) into a field covering `[lo, hi]` (m).
+    fn new(
+        lo: [f64; 2],
+        hi: [f64; 2],
+        res: f64,
+        f: usize,
+        sigma: f64,
+        occupied: &[([f64; 2], f64)],
+    ) -> Self {
+        let w = (((hi[0] - lo[0]) / res).ceil() as usize).max(1);
+        let h = (((hi[1] - lo[1]) / res).ceil() as usize).max(1);
+        let mut fine = vec![0u8; w * h];
+        let reach = (2.0 * sigma / res).ceil() as isize;
+        let inv = 1.0 / (2.0 * sigma * sigma);
+        for &(p, occ) in occupied {
+            let ci = ((p[0] - lo[0]) / res).floor() as isize;
+            let cj = ((p[1] - lo[1]) / res).floor() as isize;
+            for dj in -reach..=reach {
+                let j = cj + dj;
+                if j < 0 || j >= h as isize {
+                    continue;
+                }
+                let yc = lo[1] + (j as f64 + 0.5) * res - p[1];
+                for di in -reach..=reach {
+                    let i = ci + di;
+                    if i < 0 || i >= w as isize {
+                        continue;
+                    }
+                    let xc = lo[0] + (i as f64 + 0.5) * res - p[0];
+                    let v = (255.0 * occ * (-(xc * xc + yc * yc) * inv).exp()) as u8;
+                    let slot = &mut fine[j as usize * w + i as usize];
+                    *slot = (*slot).max(v);
+                }
+            }
+        }
+        let f = f.max(1);
+        let (cw, ch) = (w.div_ceil(f), h.div_ceil(f));
+        let mut block = vec![0u8; cw * ch];
+        for j in 0..h {
+            for i in 0..w {
+                let b = &mut block[(j / f) * cw + i / f];
+                *b = (*b).max(fine[j * w + i]);
+            }
+        }
+        let mut coarse = vec![0u8; cw * ch];
+        for j in 0..ch {
+            for i in 0..cw {
+                let mut m = 0u8;
+                for (bj, bi) in [(j, i), (j, i + 1), (j + 1, i), (j + 1, i + 1)] {
+                    if bj < ch && bi < cw {
+                        m = m.max(block[bj * cw + bi]);
+                    }
+                }
+                coarse[j * cw + i] = m;
+            }
+        }
+        Self {
+            origin: lo,
+            res,
+            w,
+            h,
+            fine,
+            f,
+            cw,
+            ch,
+            coarse,
+        }
+    }
+}
+
+/// One evaluated pose: offsets from the guess (map frame, m, m, rad) and score.
+#[derive(Clone, Copy)]
+struct Scored {
+    dx: f64,
+    dy: f64,
+    dt: f64,
+    score: f64,
+}
+
+/// The weighted mean and second moment of `poses` with weights
+/// `exp((score − best) / temperature)`.
+fn moments(poses: &[Scored], temperature: f64) -> (Vector3<f64>, Matrix3<f64>) {
+    let best = poses
+        .iter()
+        .map(|p| p.score)
+        .fold(f64::NEG_INFINITY, f64::max);
+    let mut s = 0.0;
+    let mut m = Vector3::zeros();
+    let mut mm = Matrix3::zeros();
+    for p in poses {
+        let w = ((p.score - best) / temperature).exp();
+        let v = Vector3::new(p.dx, p.dy, p.dt);
+        s += w;
+        m += w * v;
+        mm += w * v * v.transpose();
+    }
+    let mean = m / s;
+    (mean, mm / s - mean * mean.transpose())
+}
+
+impl ScanMatcher2d {
+    /// Registers `points` (robot frame, m) against `field` around `guess`
+    /// (map frame): the best pose (map frame), its covariance (map frame,
+    /// `[x, y, θ]`) and the fraction of endpoints that land on something
+    /// the view has seen; `None` without endpoints.
+    fn register(
+        &self,
+        field: &Field,
+        lut: &[f64; 256],
+        points: &[[f64; 2]],
+        guess: &Pose2,
+    ) -> Option<(Pose2, Matrix3<f64>, f64)> {
+        if points.is_empty() {
+            return None;
+        }
+        let c = &self.cfg;
+        let res = field.res;
+        let f = field.f;
+        let big = f as f64 * res;
+        let (gx, gy, gt) = xyt(guess);
+        let mean_range = points
+            .iter()
+            .map(|p| (p[0] * p[0] + p[1] * p[1]).sqrt())
+            .sum::<f64>()
+            / points.len() as f64;
+        // A fine angle step moves the mean endpoint by about one fine cell.
+        let fine_dt = (res / mean_range.clamp(1.0, 30.0)).clamp(1e-3, 5e-3);
+        let coarse_dt = f as f64 * fine_dt;
+        let na = (c.window_theta / coarse_dt).ceil() as i64;
+        let nt = (2.0 * c.window_xy / big).ceil() as usize + 1;
+        // Translation origin of the coarse grid: the guess − window, so the
+        // coarse poses are `t0 + (u, v)·big`, u, v in 0..nt.
+        let t0 = [gx - c.window_xy, gy - c.window_xy];
+        let index = |x: f64, scale: f64, origin: f64| ((x - origin) / scale).floor() as isize;
+        let mut coarse: Vec<Scored> = Vec::with_capacity((2 * na as usize + 1) * nt * nt);
+        let mut base: Vec<(isize, isize)> = Vec::with_capacity(points.len());
+        let mut sums = vec![0.0f64; nt * nt];
+        for a in -na..=na {
+            let dt = a as f64 * coarse_dt;
+            let (s, co) = (gt + dt).sin_cos();
+            base.clear();
+            for p in points {
+                let x = co * p[0] - s * p[1] + t0[0];
+                let y = s * p[0] + co * p[1] + t0[1];
+                base.push((
+                    index(x, big, field.origin[0]),
+                    index(y, big, field.origin[1]),
+                ));
+            }
+            sums.iter_mut().for_each(|v| *v = 0.0);
+            for &(bx, by) in &base {
+                for v in 0..nt {
+                    let j = by + v as isize;
+                    if j < 0 || j >= field.ch as isize {
+                        for u in 0..nt {
+                            sums[v * nt + u] += lut[0];
+                        }
+                        continue;
+                    }
+                    let row = &field.coarse[j as usize * field.cw..(j as usize + 1) * field.cw];
+                    for u in 0..nt {
+                        let i = bx + u as isize;
+                        let q = if i < 0 || i >= field.cw as isize {
+                            0
+                        } else {
+                            row[i as usize]
+                        };
+                        sums[v * nt + u] += lut[q as usize];
+                    }
+                }
+            }
+            for v in 0..nt {
+                for u in 0..nt {
+                    coarse.push(Scored {
+                        // The block's translations span [0, big): its centre.
+                        dx: t0[0] - gx + (u as f64 + 0.5) * big,
+                        dy: t0[1] - gy + (v as f64 + 0.5) * big,
+                        dt,
+                        score: sums[v * nt + u],
+                    });
+                }
+            }
+        }
+        // The best coarse poses, then every fine pose inside each.
+        let mut order: Vec<usize> = (0..coarse.len()).collect();
+        order.sort_by(|&a, &b| coarse[b].score.total_cmp(&coarse[a].score).then(a.cmp(&b)));
+        let mut fine: Vec<Scored> = Vec::new();
+        // Fine angles reach the neighbouring coarse angles: the coarse score
+        // bounds translations, not turns.
+        let half = f as i64;
+        for &ci in order.iter().take(c.candidates.max(1)) {
+            let cp = coarse[ci];
+            let bx0 = gx + cp.dx - 0.5 * big;
+            let by0 = gy + cp.dy - 0.5 * big;
+            for s_ in -half..=half {
+                let dt = cp.dt + s_ as f64 * fine_dt;
+                let (s, co) = (gt + dt).sin_cos();
+                base.clear();
+                for p in points {
+                    let x = co * p[0] - s * p[1] + bx0;
+                    let y = s * p[0] + co * p[1] + by0;
+                    base.push((
+                        index(x, res, field.origin[0]),
+                        index(y, res, field.origin[1]),
+                    ));
+                }
+                for v in 0..f {
+                    for u in 0..f {
+                        let mut score = 0.0;
+                        for &(bx, by) in &base {
+                            let (i, j) = (bx + u as isize, by + v as isize);
+                            let q =
+                                if i < 0 || j < 0 || i >= field.w as isize || j >= field.h as isize
+                                {
+                                    0
+                                } else {
+                                    field.fine[j as usize * field.w + i as usize]
+                                };
+                            score += lut[q as usize];
+                        }
+                        fine.push(Scored {
+                            dx: bx0 - gx + u as f64 * res,
+                            dy: by0 - gy + v as f64 * res,
+                            dt,
+                            score,
+                        });
+                    }
+                }
+            }
+        }
+        let best = fine.iter().copied().fold(None::<Scored>, |b, p| match b {
+            Some(b) if b.score >= p.score => Some(b),
+            _ => Some(p),
+        })?;
+        let mode = pose2(gx + best.dx, gy + best.dy, gt + best.dt);
+        // Overlap at the mode: endpoints on a field cell above zero.
+        let (s, co) = (gt + best.dt).sin_cos();
+        let hits = points
+            .iter()
+            .filter(|p| {
+                let x = co * p[0] - s * p[1] + gx + best.dx;
+                let y = s * p[0] + co * p[1] + gy + best.dy;
+                let (i, j) = (
+                    index(x, res, field.origin[0]),
+                    index(y, res, field.origin[1]),
+                );
+                i >= 0
+                    && j >= 0
+                    && i < field.w as isize
+                    && j < field.h as isize
+                    && field.fine[j as usize * field.w + i as usize] > 0
+            })
+            .count();
+        // Spread: the wide surface says where the scan does not constrain
+        // the pose; the fine one, how sharp the peak is within its cell.
+        let (_, wide) = moments(&coarse, c.temperature);
+        let (_, sharp) = moments(&fine, c.temperature);
+        let mut cov = sharp + excess(&wide, big, coarse_dt);
+        cov[(0, 0)] += c.min_std_xy * c.min_std_xy;
+        cov[(1, 1)] += c.min_std_xy * c.min_std_xy;
+        cov[(2, 2)] += c.min_std_theta * c.min_std_theta;
+        Some((mode, cov, hits as f64 / points.len() as f64))
+    }
+
+    /// The fused proposal of a particle at `prev` whose scan matched at
+    /// `mode` with covariance `cov` (map frame), for the odometry motion
+    /// `odometry`; `None` if the fusion is not positive definite.
+    pub fn fuse(
+        &self,
+        prev: &Pose2,
+        odometry: &Pose2,
+        mode: &Pose2,
+        cov: &Matrix3<f64>,
+    ) -> Option<Proposal<Pose2>> {
+        let (mu_p, sigma_p) = self.motion.local_gaussian(odometry);
+        let local = prev.inverse() * mode;
+        let (mx, my, mt) = xyt(&local);
+        let mu_m = Vector3::new(mx, my, mu_p[2] + wrap_angle(mt - mu_p[2]));
+        // Map-frame covariance into the previous robot frame.
+        let r = rot3(-xyt(prev).2);
+        let sigma_m = r * cov * r.transpose();
+        let info_m = sigma_m.try_inverse()?;
+        let info_p = sigma_p.try_inverse()?;
+        let sigma = (info_m + info_p).try_inverse()?;
+        let mu = sigma * (info_m * mu_m + info_p * Vector3::new(mu_p[0], mu_p[1], mu_p[2]));
+        // Body frame of the mean: `pose2(μ) · pose2(ξ)` moves by R(μθ)·ξ_xy.
+        let rb = rot3(-mu[2]);
+        let body = rb * sigma * rb.transpose();
+        let body = (body + body.transpose()) * 0.5;
+        Proposal::matched(
+            pose2(mu[0], mu[1], mu[2]),
+            DMatrix::from_column_slice(3, 3, body.as_slice()),
+        )
+    }
+}
+
+/// The spread of the coarse surface beyond what its own blocks make of a
+/// sharp peak. A coarse cell is the maximum over two blocks of `big`
+/// metres per axis, so even a point-like peak weighs about two blocks
+/// (variance ≈ big²/4; heading: two coarse steps `dt`): that much is taken
+/// off the `[x, y]` block's eigenvalues and off the heading variance; what
+/// is left is the direction the scan does not constrain (a corridor's axis).
+fn excess(wide: &Matrix3<f64>, big: f64, dt: f64) -> Matrix3<f64> {
+    let xy = wide.fixed_view::<2, 2>(0, 0).into_owned();
+    let eig = nalgebra::SymmetricEigen::new(xy);
+    let shrunk = eig.eigenvalues.map(|l| (l - 0.25 * big * big).max(0.0));
+    let xy = eig.eigenvectors * Matrix2::from_diagonal(&shrunk) * eig.eigenvectors.transpose();
+    let mut out = Matrix3::zeros();
+    out.fixed_view_mut::<2, 2>(0, 0).copy_from(&xy);
+    out[(2, 2)] = (wide[(2, 2)] - 0.25 * dt * dt).max(0.0);
+    out
+}
+
+/// Rotation by `a` of the `[x, y]` block, identity on θ.
+fn rot3(a: f64) -> Matrix3<f64> {
+    let (s, c) = a.sin_cos();
+    let r = Matrix2::new(c, -s, s, c);
+    let mut m = Matrix3::identity();
+    m.fixed_view_mut::<2, 2>(0, 0).copy_from(&r);
+    m
+}
+
+impl ScanRegistration<2, Pose2> for ScanMatcher2d {
+    fn propose(&self, ctx: &MatchContext<'_, 2, Pose2>) -> Vec<Proposal<Pose2>> {
+        let c = &self.cfg;
+        let res = self.res();
+        let scan = ctx.scan;
+        // Endpoints in the robot frame, evenly thinned.
+        let returns: Vec<[f64; 2]> = scan
+            .beams
+            .iter()
+            .filter(|b| !b.no_return)
+            .map(|b| {
+                crate::geometry::Pose::transform_point(
+                    &scan.sensor,
+                    [b.dir[0] * b.range, b.dir[1] * b.range],
+                )
+            })
+            .collect();
+        let stride = returns.len().div_ceil(c.max_beams.max(1)).max(1);
+        let points: Vec<[f64; 2]> = returns.into_iter().step_by(stride).collect();
+        let n = ctx.particles.len();
+        if points.is_empty() || n == 0 {
+            return vec![Proposal::Motion; n];
+        }
+        let reach = points
+            .iter()
+            .map(|p| (p[0] * p[0] + p[1] * p[1]).sqrt())
+            .fold(0.0, f64::max)
+            + c.window_xy
+            + 2.0 * c.sigma
+            + 2.0 * c.coarse_factor as f64 * res;
+        let guesses: Vec<Pose2> = ctx
+            .particles
+            .iter()
+            .map(|p| p.pose * ctx.odometry)
+            .collect();
+        // Groups in order of first appearance.
+        let mut keys: Vec<NodeId> = Vec::new();
+        let mut members: Vec<Vec<usize>> = Vec::new();
+        for (i, &g) in ctx.groups.iter().enumerate() {
+            match keys.iter().position(|&k| k == g) {
+                Some(at) => members[at].push(i),
+                None => {
+                    keys.push(g);
+                    members.push(vec![i]);
+                }
+            }
+        }
+        let boxes: Vec<([f64; 2], [f64; 2])> = members
+            .iter()
+            .map(|m| {
+                let mut lo = [f64::INFINITY; 2];
+                let mut hi = [f64::NEG_INFINITY; 2];
+                for &i in m {
+                    let t = guesses[i].translation;
+                    lo = [lo[0].min(t.x - reach), lo[1].min(t.y - reach)];
+                    hi = [hi[0].max(t.x + reach), hi[1].max(t.y + reach)];
+                }
+                (lo, hi)
+            })
+            .collect();
+        // Cells anyone has seen a hit in, once for all groups, in storage
+        // order (each group then resolves only these through its view).
+        let cell = self.cell;
+        let lo = boxes.iter().fold([f64::INFINITY; 2], |a, b| {
+            [a[0].min(b.0[0]), a[1].min(b.0[1])]
+        });
+        let hi = boxes.iter().fold([f64::NEG_INFINITY; 2], |a, b| {
+            [a[0].max(b.1[0]), a[1].max(b.1[1])]
+        });
+        let bits = crate::dpmap::DpMap::<2>::brick_bits();
+        let brick = |x: f64| ((x / cell).floor() as i32) >> bits;
+        let (bx0, bx1, by0, by1) = (brick(lo[0]), brick(hi[0]), brick(lo[1]), brick(hi[1]));
+        let hit_cells: Vec<[i32; 2]> = (by0..=by1)
+            .into_par_iter()
+            .flat_map_iter(|by| {
+                let mut out = Vec::new();
+                for bx in bx0..=bx1 {
+                    ctx.map.for_each_cell_in_brick([bx, by], |k, list| {
+                        if list.iter().any(|e| e.hits > 0.0) {
+                            out.push(k);
+                        }
+                    });
+                }
+                out
+            })
+            .collect();
+        let floor = c.floor.clamp(1e-6, 1.0);
+        let mut lut = [0.0f64; 256];
+        for (q, v) in lut.iter_mut().enumerate() {
+            *v = (floor + (1.0 - floor) * q as f64 / 255.0).ln();
+        }
+        let per_group: Vec<Vec<(usize, Proposal<Pose2>)>> = members
+            .par_iter()
+            .zip(boxes.par_iter())
+            .map(|(m, &(lo, hi))| {
+                let mut view = ctx.map.view(ctx.numbering, ctx.particles[m[0]].node);
+                let occupied: Vec<([f64; 2], f64)> = hit_cells
+                    .iter()
+                    .filter_map(|&k| {
+                        let x = (k[0] as f64 + 0.5) * cell;
+                        let y = (k[1] as f64 + 0.5) * cell;
+                        if x < lo[0] || x > hi[0] || y < lo[1] || y > hi[1] {
+                            return None;
+                        }
+                        let e = view.entry(k)?;
+                        (e.hits > 0.0).then(|| {
+                            (
+                                [x, y],
+                                1.0 - (-(e.hits as f64 / e.distance as f64) * cell).exp(),
+                            )
+                        })
+                    })
+                    .collect();
+                let field = Field::new(lo, hi, res, c.coarse_factor, c.sigma, &occupied);
+                m.iter()
+                    .map(|&i| {
+                        let prev = &ctx.particles[i].pose;
+                        let q = self
+                            .register(&field, &lut, &points, &guesses[i])
+                            .filter(|&(_, _, overlap)| overlap >= c.min_overlap)
+                            .and_then(|(mode, cov, _)| self.fuse(prev, ctx.odometry, &mode, &cov))
+                            .unwrap_or(Proposal::Motion);
+                        (i, q)
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut out = vec![Proposal::Motion; n];
+        for (i, q) in per_group.into_iter().flatten() {
+            out[i] = q;
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn matcher() -> ScanMatcher2d {
+        ScanMatcher2d::new(
+            ScanMatchConfig::default(),
+            CdtModel {
+                cfg: crate::config::Motion2dConfig::default(),
+            },
+            1.0 / 35.0,
+        )
+    }
+
+    /// A room's walls as occupied points (map frame) and the endpoints a
+    /// scan from `at` sees of them (robot frame), every few degrees.
+    /// Occupied points (map frame) with stop probabilities.
+    type Walls = Vec<([f64; 2], f64)>;
+
+    fn room(at: &Pose2) -> (Walls, Vec<[f64; 2]>) {
+        let (w, h) = (6.0, 4.0);
+        let mut walls = Vec::new();
+        let step = 1.0 / 35.0;
+        let mut t = 0.0;
+        while t <= w {
+            walls.push(([t, 0.0], 0.9));
+            walls.push(([t, h], 0.9));
+            t += step;
+        }
+        let mut t = 0.0;
+        while t <= h {
+            walls.push(([0.0, t], 0.9));
+            walls.push(([w, t], 0.9));
+            t += step;
+        }
+        // Ray-cast the rectangle from `at`.
+        let (x0, y0, th) = xyt(at);
+        let mut points = Vec::new();
+        for k in 0..120 {
+            let a = th + k as f64 * std::f64::consts::TAU / 120.0;
+            let (dx, dy) = (a.cos(), a.sin());
+            let mut best = f64::INFINITY;
+            for (lim, d, o) in [(0.0, dx, x0), (w, dx, x0), (0.0, dy, y0), (h, dy, y0)] {
+                if d.abs() > 1e-9 {
+                    let r = (lim - o) / d;
+                    if r > 0.0 {
+                        let (px, py) = (x0 + r * dx, y0 + r * dy);
+                        if (-1e-6..=w + 1e-6).contains(&px) && (-1e-6..=h + 1e-6).contains(&py) {
+                            best = best.min(r);
+                        }
+                    }
+                }
+            }
+            let p = at.inverse() * nalgebra::Point2::new(x0 + best * dx, y0 + best * dy);
+            points.push([p.x, p.y]);
+        }
+        (walls, points)
+    }
+
+    fn lut(floor: f64) -> [f64; 256] {
+        let mut lut = [0.0; 256];
+        for (q, v) in lut.iter_mut().enumerate() {
+            *v = (floor + (1.0 - floor) * q as f64 / 255.0).ln();
+        }
+        lut
+    }
+
+    #[test]
+    fn a_slip_of_40_cm_and_12_degrees_is_found_to_a_few_centimetres() {
+        let m = matcher();
+        let truth = pose2(2.5, 1.8, 0.3);
+        let (walls, points) = room(&truth);
+        let field = Field::new(
+            [-2.0, -2.0],
+            [8.0, 6.0],
+            m.res(),
+            m.cfg.coarse_factor,
+            m.cfg.sigma,
+            &walls,
+        );
+        // The odometry guess is off by 0.4 m, −0.3 m and 12°.
+        let guess = pose2(2.9, 1.5, 0.3 + 12f64.to_radians());
+        let (mode, cov, overlap) = m
+            .register(&field, &lut(m.cfg.floor), &points, &guess)
+            .unwrap();
+        let e = truth.inverse() * mode;
+        assert!(e.translation.vector.norm() < 0.04, "{e:?}");
+        // Heading to about one fine field cell at the mean range (5.7 cm at
+        // ~2.5 m), and inside two of the match's own stds.
+        assert!(e.rotation.angle().abs() < 0.025, "{e:?}");
+        assert!(
+            e.rotation.angle().abs() < 2.0 * cov[(2, 2)].sqrt(),
+            "{e:?} {cov}"
+        );
+        assert!(overlap > 0.9, "{overlap}");
+        // A closed room pins every direction: a few centimetres, < 3°.
+        assert!(
+            cov[(0, 0)].sqrt() < 0.08 && cov[(1, 1)].sqrt() < 0.08,
+            "{cov}"
+        );
+        assert!(cov[(2, 2)].sqrt() < 0.05, "{cov}");
+    }
+
+    #[test]
+    fn a_corridor_leaves_its_axis_to_the_motion_model() {
+        let m = matcher();
+        // Two long parallel walls along x, 2 m apart; the scan sees 4 m of each.
+        let mut walls = Vec::new();
+        let mut t = -20.0;
+        while t <= 20.0 {
+            walls.push(([t, 0.0], 0.9));
+            walls.push(([t, 2.0], 0.9));
+            t += 1.0 / 35.0;
+        }
+        let points: Vec<[f64; 2]> = (0..60)
+            .map(|k| {
+                let x = -2.0 + k as f64 * 4.0 / 30.0;
+                if k < 30 { [x, -1.0] } else { [x - 4.0, 1.0] }
+            })
+            .collect();
+        let field = Field::new(
+            [-22.0, -4.0],
+            [22.0, 6.0],
+            m.res(),
+            m.cfg.coarse_factor,
+            m.cfg.sigma,
+            &walls,
+        );
+        let guess = pose2(0.0, 1.1, 0.0);
+        let (mode, cov, _) = m
+            .register(&field, &lut(m.cfg.floor), &points, &guess)
+            .unwrap();
+        assert!((mode.translation.y - 1.0).abs() < 0.04, "{mode:?}");
+        // Across: sharp; along: spread over the whole window.
+        assert!(cov[(1, 1)].sqrt() < 0.05, "{cov}");
+        assert!(cov[(0, 0)].sqrt() > 0.2, "{cov}");
+        // Fused with the motion model for 0.3 m straight ahead, the axis
+        // keeps (about) the model's spread and the cross direction the match's.
+        let prev = pose2(0.0, 1.1, 0.0);
+        let odo = pose2(0.3, 0.0, 0.0);
+        let q = m.fuse(&prev, &odo, &mode, &cov).unwrap();
+        let Proposal::Matched { delta, factor } = q else {
+            panic!("not matched")
+        };
+        let body = &factor * factor.transpose();
+        let (_, motion) = m.motion.local_gaussian(&odo);
+        assert!(body[(0, 0)].sqrt() > 0.5 * motion[(0, 0)].sqrt(), "{body}");
+        assert!(body[(1, 1)].sqrt() < 0.05, "{body}");
+        // The fused mean keeps the match's y (−0.1 m from the guess).
+        assert!((delta.translation.y + 0.1).abs() < 0.04, "{delta:?}");
+    }
+}
