@@ -206,6 +206,7 @@ pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
         progress.finish();
         s
     };
+    super::progress::print_backend_note(&s.backend);
     super::progress::print_warnings(&s.warnings);
     println!(
         "map2d: {} scans ({} processed), {} particles, {:.1} s wall, peak {:.0} MiB -> {}",

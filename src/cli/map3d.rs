@@ -123,6 +123,7 @@ pub fn run(a: Map3dArgs) -> dpslam::Result<()> {
         &mut |done, total| progress.update(done, total),
     )?;
     progress.finish();
+    super::progress::print_backend_note(&s.backend);
     super::progress::print_warnings(&s.warnings);
     println!(
         "map3d: {} sweeps, {} particles, {:.0} beams/sweep, {:.2} s/sweep, {:.1} s wall, \

@@ -75,3 +75,14 @@ pub fn print_warnings(warnings: &[String]) {
         eprintln!("dpslam: warning: {w}");
     }
 }
+
+/// Says on stderr why `--backend auto` ended on the CPU (`backend` as the
+/// run summary records it: `cpu (auto: REASON)`).
+pub fn print_backend_note(backend: &str) {
+    if let Some(reason) = backend
+        .strip_prefix("cpu (auto: ")
+        .and_then(|r| r.strip_suffix(')'))
+    {
+        eprintln!("dpslam: {reason}; using the CPU backend");
+    }
+}
