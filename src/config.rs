@@ -672,6 +672,18 @@ impl Config {
         validate_map3d(&self.map3d)
     }
 
+    /// Sizes rayon's global pool to `threads` (0: leave rayon's default, all
+    /// cores). A process has one global pool: once it exists, later calls
+    /// change nothing.
+    pub fn install_thread_pool(&self) {
+        if self.threads > 0 {
+            // The error says a pool already exists: keep that one.
+            let _ = rayon::ThreadPoolBuilder::new()
+                .num_threads(self.threads)
+                .build_global();
+        }
+    }
+
     /// Cell size in metres.
     pub fn cell_size(&self) -> f64 {
         1.0 / self.map.cells_per_metre

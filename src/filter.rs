@@ -153,6 +153,20 @@ pub struct PhaseTimes {
     pub prune_s: f64,
 }
 
+impl PhaseTimes {
+    /// Each phase's time divided by `n` (e.g. per step).
+    pub fn per(self, n: f64) -> Self {
+        Self {
+            predict_s: self.predict_s / n,
+            weigh_quick_s: self.weigh_quick_s / n,
+            weigh_full_s: self.weigh_full_s / n,
+            resample_s: self.resample_s / n,
+            update_s: self.update_s / n,
+            prune_s: self.prune_s / n,
+        }
+    }
+}
+
 impl std::ops::AddAssign for PhaseTimes {
     fn add_assign(&mut self, o: Self) {
         self.predict_s += o.predict_s;

@@ -154,12 +154,7 @@ fn bench_config(
         cfg.threads = t;
     }
     cfg.validate()?;
-    if cfg.threads > 0 {
-        // Ignore the error if a pool already exists (only one global pool per process).
-        let _ = rayon::ThreadPoolBuilder::new()
-            .num_threads(cfg.threads)
-            .build_global();
-    }
+    cfg.install_thread_pool();
     Ok(cfg)
 }
 

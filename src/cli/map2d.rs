@@ -134,12 +134,7 @@ pub fn build_config(run: &RunArgs, particles: Option<usize>) -> dpslam::Result<C
     }
     gpu_settings_from_env(&mut cfg)?;
     cfg.validate()?;
-    if cfg.threads > 0 {
-        // Ignore the error if a pool already exists (only one global pool per process).
-        let _ = rayon::ThreadPoolBuilder::new()
-            .num_threads(cfg.threads)
-            .build_global();
-    }
+    cfg.install_thread_pool();
     Ok(cfg)
 }
 

@@ -149,18 +149,9 @@ pub struct Map3dProfile {
     pub local_map_s: f64,
     /// ICP iterations.
     pub icp_s: f64,
-    /// Filter: drawing samples.
-    pub predict_s: f64,
-    /// Filter: quick culling passes.
-    pub weigh_quick_s: f64,
-    /// Filter: full-trace passes.
-    pub weigh_full_s: f64,
-    /// Filter: resampling.
-    pub resample_s: f64,
-    /// Filter: map update.
-    pub update_s: f64,
-    /// Filter: pruning.
-    pub prune_s: f64,
+    /// The filter's phases, per step.
+    #[serde(flatten)]
+    pub filter: crate::filter::PhaseTimes,
 }
 
 /// Runs 3-D DP-SLAM on the sweeps of `input` and writes the run folder `out`.
@@ -287,12 +278,7 @@ pub fn run_map3d_observed(
                 prepare_s: prop.prepare_s / n,
                 local_map_s: prop.local_map_s / steps,
                 icp_s: (prop.align_s - prop.local_map_s) / steps,
-                predict_s: f.predict_s / steps,
-                weigh_quick_s: f.weigh_quick_s / steps,
-                weigh_full_s: f.weigh_full_s / steps,
-                resample_s: f.resample_s / steps,
-                update_s: f.update_s / steps,
-                prune_s: f.prune_s / steps,
+                filter: f.per(steps),
             }
         },
         proposal_fallbacks: prop.fallbacks,
