@@ -283,6 +283,10 @@ struct Bench3dArgs {
     /// Do not run KISS-ICP even where `kiss_icp_pipeline` is on the PATH
     #[arg(long)]
     no_kiss: bool,
+    /// Reuse each method's earlier run on the same sequence and settings
+    /// (trajectory and recorded CPU, memory, time): rescore and redraw only
+    #[arg(long)]
+    reuse_runs: bool,
 }
 
 fn run_3d(a: Bench3dArgs) -> dpslam::Result<()> {
@@ -310,6 +314,7 @@ fn run_3d(a: Bench3dArgs) -> dpslam::Result<()> {
         opts.kiss_icp = None;
     }
     opts.particles = a.particles;
+    opts.reuse_runs = a.reuse_runs;
     opts.threads = a.threads;
     opts.command = std::env::args().collect::<Vec<_>>().join(" ");
     let r = run_bench3d(&opts)?;
