@@ -30,14 +30,22 @@ fn tiny_bench_reports_every_method_with_a_finite_ate() {
     let dp = s.run(DPSLAM).expect("dpslam ran");
     let odo = s.run(ODOMETRY).expect("odometry scored");
     for m in [dp, odo] {
-        assert!(m.ate_rmse_m.is_finite() && m.ate_rot_deg.is_finite(), "{m:?}");
+        assert!(
+            m.ate_rmse_m.is_finite() && m.ate_rot_deg.is_finite(),
+            "{m:?}"
+        );
         assert_eq!(m.poses, 8);
     }
     let u = dp.usage.expect("measured");
     assert!(u.cpu_s > 0.0 && u.peak_rss_mib > 1.0, "{u:?}");
     assert!(dp.time_per_sweep_s.is_some_and(|t| t > 0.0));
     // The sweeps alone do better than the noisy odometry round the corner.
-    assert!(dp.ate_rmse_m < odo.ate_rmse_m, "{} vs {}", dp.ate_rmse_m, odo.ate_rmse_m);
+    assert!(
+        dp.ate_rmse_m < odo.ate_rmse_m,
+        "{} vs {}",
+        dp.ate_rmse_m,
+        odo.ate_rmse_m
+    );
     if kiss {
         assert!(s.run(KISS_ICP).is_some_and(|k| k.ate_rmse_m.is_finite()));
     } else {
@@ -45,13 +53,22 @@ fn tiny_bench_reports_every_method_with_a_finite_ate() {
     }
 
     let md = std::fs::read_to_string(opts.docs.join("RESULTS-3D.md")).unwrap();
-    for needle in ["## corridors-tiny", "| dpslam map3d |", "| odometry |", "ATE RMSE m"] {
+    for needle in [
+        "## corridors-tiny",
+        "| dpslam map3d |",
+        "| odometry |",
+        "ATE RMSE m",
+    ] {
         assert!(md.contains(needle), "{needle} missing from\n{md}");
     }
     for m in &s.runs {
         let pic = opts.docs.join(m.picture.as_ref().unwrap());
         let size = std::fs::metadata(&pic).unwrap().len();
-        assert!(size > 1000 && size < 300_000, "{}: {size} bytes", pic.display());
+        assert!(
+            size > 1000 && size < 300_000,
+            "{}: {size} bytes",
+            pic.display()
+        );
     }
     assert!(opts.out.join("results-3d.json").is_file());
 }

@@ -312,7 +312,10 @@ fn corridors_preset_is_a_long_feature_poor_loop_and_gives_sweeps() {
     let spacing = sim.path_length / (preset.sweeps - 1) as f64;
     assert!((0.9..1.1).contains(&spacing), "{spacing} m between sweeps");
     assert_eq!(sim.sweeps.len(), 60);
-    assert!(sim.sweeps.iter().all(|s| s.len() > 100), "a sweep saw nothing");
+    assert!(
+        sim.sweeps.iter().all(|s| s.len() > 100),
+        "a sweep saw nothing"
+    );
     // The loop is closed and overlaps its start.
     let first = sim.truth[0].pose.translation.vector;
     let back = sim.truth[sim.truth.len() * 3 / 4..]
@@ -328,9 +331,15 @@ fn corridors_preset_is_a_long_feature_poor_loop_and_gives_sweeps() {
     let w = World3d::corridors();
     for (dir, want) in [([0.0, 1.0, 0.0], Some(1.5)), ([0.0, -1.0, 0.0], Some(1.5))] {
         let d = w.cast([40.0, 0.0, 1.2], dir).map(|h| h.distance);
-        assert!(d.zip(want).is_some_and(|(d, w)| (d - w).abs() < 1e-9), "{dir:?}: {d:?}");
+        assert!(
+            d.zip(want).is_some_and(|(d, w)| (d - w).abs() < 1e-9),
+            "{dir:?}: {d:?}"
+        );
     }
-    assert!(w.cast([40.0, 0.0, 1.2], [1.0, 0.0, 0.0]).is_none_or(|h| h.distance > 60.0));
+    assert!(
+        w.cast([40.0, 0.0, 1.2], [1.0, 0.0, 0.0])
+            .is_none_or(|h| h.distance > 60.0)
+    );
 }
 
 #[test]
@@ -342,13 +351,27 @@ fn simulate3d_world_flag_selects_the_corridors() {
         .arg(dir.path())
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(text.contains("3 sweeps") && text.contains("path 36"), "{text}");
+    assert!(
+        text.contains("3 sweeps") && text.contains("path 36"),
+        "{text}"
+    );
     assert_eq!(read_tum(&dir.path().join("truth.tum")).unwrap().len(), 3);
     // --world and --config exclude each other.
     let both = std::process::Command::new(env!("CARGO_BIN_EXE_dpslam"))
-        .args(["simulate3d", "--world", "corridors", "--config", "x.toml", "--out"])
+        .args([
+            "simulate3d",
+            "--world",
+            "corridors",
+            "--config",
+            "x.toml",
+            "--out",
+        ])
         .arg(dir.path())
         .output()
         .unwrap();

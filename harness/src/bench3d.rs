@@ -347,8 +347,10 @@ pub const KISS_ICP: &str = "KISS-ICP";
 pub const KISS_ICP_FINE: &str = "KISS-ICP, 0.2 m voxels";
 
 /// The KISS-ICP configurations run: (row name, slug, voxel size or the default).
-const KISS_VARIANTS: [(&str, &str, Option<f64>); 2] =
-    [(KISS_ICP, "kiss-icp", None), (KISS_ICP_FINE, "kiss-icp-0.2", Some(0.2))];
+const KISS_VARIANTS: [(&str, &str, Option<f64>); 2] = [
+    (KISS_ICP, "kiss-icp", None),
+    (KISS_ICP_FINE, "kiss-icp-0.2", Some(0.2)),
+];
 /// The odometry's row.
 pub const ODOMETRY: &str = "odometry";
 
@@ -595,7 +597,13 @@ fn recorded_path(dir: &Path, slug: &str) -> PathBuf {
 
 /// The recorded usage of `slug`'s earlier run with `settings`, if reuse is on
 /// and there is one (and its `output` exists).
-fn reusable(dir: &Path, slug: &str, settings: &str, output: &Path, opts: &Bench3dOptions) -> Option<Usage> {
+fn reusable(
+    dir: &Path,
+    slug: &str,
+    settings: &str,
+    output: &Path,
+    opts: &Bench3dOptions,
+) -> Option<Usage> {
     if !opts.reuse_runs || !output.is_file() {
         return None;
     }
@@ -621,9 +629,17 @@ fn record(dir: &Path, slug: &str, settings: &str, u: &Usage) -> Result<()> {
 }
 
 /// `dpslam map3d SWEEPS` (LiDAR only), measured.
-fn run_dpslam(dir: &Path, truth_path: &Path, truth: &[Stamped], opts: &Bench3dOptions) -> Result<MethodRun> {
+fn run_dpslam(
+    dir: &Path,
+    truth_path: &Path,
+    truth: &[Stamped],
+    opts: &Bench3dOptions,
+) -> Result<MethodRun> {
     let run = dir.join("dpslam");
-    let key = format!("map3d --particles {} --threads {:?}", opts.particles, opts.threads);
+    let key = format!(
+        "map3d --particles {} --threads {:?}",
+        opts.particles, opts.threads
+    );
     let earlier = reusable(dir, "dpslam", &key, &run.join("trajectory.tum"), opts);
     let usage = match earlier {
         Some(u) => u,
@@ -646,8 +662,8 @@ fn run_dpslam(dir: &Path, truth_path: &Path, truth: &[Stamped], opts: &Bench3dOp
     };
     let json = run.join("run.json");
     let text = std::fs::read_to_string(&json).map_err(|e| Error::io(&json, e))?;
-    let summary: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| Error::Invalid(format!("{}: {e}", json.display())))?;
+    let summary: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| Error::Invalid(format!("{}: {e}", json.display())))?;
     let per_sweep = summary["time_per_sweep_s"].as_f64();
     let mut notes = Vec::new();
     if let Some(n) = summary["proposal_fallbacks"].as_u64().filter(|n| *n > 0) {
@@ -656,11 +672,16 @@ fn run_dpslam(dir: &Path, truth_path: &Path, truth: &[Stamped], opts: &Bench3dOp
     if let Some(b) = summary["mean_beams_per_sweep"].as_f64() {
         notes.push(format!("{b:.0} beams per sweep after down-sampling"));
     }
-    let threads = summary["threads"].as_u64().map_or(String::new(), |t| format!(", {t} threads"));
+    let threads = summary["threads"]
+        .as_u64()
+        .map_or(String::new(), |t| format!(", {t} threads"));
     let mut r = score(
         DPSLAM,
         "dpslam",
-        format!("{} particles, LiDAR only (no --poses){threads}", opts.particles),
+        format!(
+            "{} particles, LiDAR only (no --poses){threads}",
+            opts.particles
+        ),
         truth_path,
         truth,
         &run.join("trajectory.tum"),
@@ -692,10 +713,23 @@ fn run_kiss(
             "defaults but `mapping: voxel_size: {v}` (`kiss_icp_pipeline --config kiss.yaml SWEEPS`)"
         ),
     };
-    let note = Some("time per sweep: process wall time over the sweeps (Python start-up included)".to_string());
+    let note = Some(
+        "time per sweep: process wall time over the sweeps (Python start-up included)".to_string(),
+    );
     if let Some(u) = reusable(dir, slug, &settings, &tum, opts) {
         let n = read_poses(&tum)?.len().max(1);
-        let mut r = score(method, slug, settings, truth_path, truth, &tum, Some(u), Some(u.wall_s / n as f64), opts, note)?;
+        let mut r = score(
+            method,
+            slug,
+            settings,
+            truth_path,
+            truth,
+            &tum,
+            Some(u),
+            Some(u.wall_s / n as f64),
+            opts,
+            note,
+        )?;
         r.reused_run = true;
         return Ok(r);
     }
@@ -728,9 +762,7 @@ fn run_kiss(
                 .and_then(|n| n.to_str())
                 .is_some_and(|n| n.ends_with("_poses_kitti.txt"))
         })
-        .ok_or_else(|| {
-            Error::Invalid(format!("no *_poses_kitti.txt in {}", latest.display()))
-        })?;
+        .ok_or_else(|| Error::Invalid(format!("no *_poses_kitti.txt in {}", latest.display())))?;
     // Frame k of the KITTI file is sweep k, stamped k s like the truth.
     let poses = read_poses(&kitti)?;
     write_stamped(&tum, &poses)?;
@@ -839,8 +871,10 @@ pub fn run_bench3d(opts: &Bench3dOptions) -> Result<Bench3dReport> {
                 m.method,
                 m.ate_rmse_m,
                 m.ate_rot_deg,
-                m.usage
-                    .map_or(String::new(), |u| format!(", {:.1} CPU-s, {:.0} MiB", u.cpu_s, u.peak_rss_mib))
+                m.usage.map_or(String::new(), |u| format!(
+                    ", {:.1} CPU-s, {:.0} MiB",
+                    u.cpu_s, u.peak_rss_mib
+                ))
             );
         }
         sequences.push(r);
@@ -984,7 +1018,14 @@ pub fn results3d_markdown(r: &Bench3dReport) -> String {
             let header: Vec<&str> = pics.iter().map(|m| m.method.as_str()).collect();
             let row: Vec<String> = pics
                 .iter()
-                .map(|m| format!("![{} on {}]({})", m.method, s.name, m.picture.as_deref().unwrap_or("")))
+                .map(|m| {
+                    format!(
+                        "![{} on {}]({})",
+                        m.method,
+                        s.name,
+                        m.picture.as_deref().unwrap_or("")
+                    )
+                })
                 .collect();
             md += &markdown_table(&header, &[row]);
             md += "\n";
@@ -1010,9 +1051,15 @@ mod tests {
     fn a_measured_process_reports_cpu_and_memory() {
         let dir = tempfile::tempdir().unwrap();
         let mut cmd = Command::new("sh");
-        cmd.args(["-c", "i=0; while [ $i -lt 20000 ]; do i=$((i+1)); done; echo done"]);
+        cmd.args([
+            "-c",
+            "i=0; while [ $i -lt 20000 ]; do i=$((i+1)); done; echo done",
+        ]);
         let u = run_measured(cmd, &dir.path().join("log")).unwrap();
-        assert!(u.cpu_s > 0.0 && u.peak_rss_mib > 0.1 && u.wall_s > 0.0, "{u:?}");
+        assert!(
+            u.cpu_s > 0.0 && u.peak_rss_mib > 0.1 && u.wall_s > 0.0,
+            "{u:?}"
+        );
         let mut bad = Command::new("sh");
         bad.args(["-c", "echo oops; exit 3"]);
         let e = run_measured(bad, &dir.path().join("log2")).unwrap_err();

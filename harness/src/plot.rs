@@ -210,10 +210,16 @@ impl Plot {
         if !self.cloud.is_empty() {
             let (w, h) = (img.width() as usize, img.height() as usize);
             let mut count = vec![0u32; w * h];
-            for p in self.cloud.iter().filter(|p| p[0].is_finite() && p[1].is_finite()) {
+            for p in self
+                .cloud
+                .iter()
+                .filter(|p| p[0].is_finite() && p[1].is_finite())
+            {
                 let q = frame.to_pixel(*p);
                 let (x, y) = (q[0].round() as i64, q[1].round() as i64);
-                if (i64::from(l)..=i64::from(r)).contains(&x) && (i64::from(t)..=i64::from(b)).contains(&y) {
+                if (i64::from(l)..=i64::from(r)).contains(&x)
+                    && (i64::from(t)..=i64::from(b)).contains(&y)
+                {
                     count[y as usize * w + x as usize] += 1;
                 }
             }

@@ -474,7 +474,11 @@ impl World3d {
             let (ta, tb) = (turn(i), turn((i + 1) % n));
             for sgn in [1.0, -1.0] {
                 let start = if ta == sgn { half } else { -half - t };
-                let end = if tb == sgn { len - half } else { len + half + t };
+                let end = if tb == sgn {
+                    len - half
+                } else {
+                    len + half + t
+                };
                 let (o0, o1) = (sgn * half, sgn * (half + t));
                 let mut from = start;
                 for &(fs, fside, kind) in &features {
