@@ -296,3 +296,84 @@ fn shipped_data_set_is_reproducible() {
     let ate = evaluate_ate(&truth, &odom, &opts).unwrap();
     assert!(ate.rmse_m >= 1.0, "{ate}");
 }
+
+#[test]
+fn corridors_preset_is_a_long_feature_poor_loop_and_gives_sweeps() {
+    let preset = Sim3dConfig::corridors();
+    assert!(preset.sweeps >= 300, "{}", preset.sweeps);
+    let cfg = Sim3dConfig {
+        sweeps: 60,
+        rings: 4,
+        columns: 64,
+        ..Sim3dConfig::corridors()
+    };
+    let sim = simulate3d(&cfg, 1).unwrap();
+    assert!(sim.path_length >= 300.0, "loop {} m", sim.path_length);
+    let spacing = sim.path_length / (preset.sweeps - 1) as f64;
+    assert!((0.9..1.1).contains(&spacing), "{spacing} m between sweeps");
+    assert_eq!(sim.sweeps.len(), 60);
+    assert!(
+        sim.sweeps.iter().all(|s| s.len() > 100),
+        "a sweep saw nothing"
+    );
+    // The loop is closed and overlaps its start.
+    let first = sim.truth[0].pose.translation.vector;
+    let back = sim.truth[sim.truth.len() * 3 / 4..]
+        .iter()
+        .map(|p| (p.pose.translation.vector - first).norm())
+        .fold(f64::INFINITY, f64::min);
+    assert!(back < 3.5, "closest return {back}");
+    // Flat: one floor, no pitch or roll.
+    let s = sim.summary().unwrap();
+    assert!(s.max_pitch_roll_deg.0 < 1e-6 && s.max_pitch_roll_deg.1 < 1e-6);
+    // Mid-corridor, the walls are 1.5 m to either side and nothing is
+    // within 60 m along the corridor.
+    let w = World3d::corridors();
+    for (dir, want) in [([0.0, 1.0, 0.0], Some(1.5)), ([0.0, -1.0, 0.0], Some(1.5))] {
+        let d = w.cast([40.0, 0.0, 1.2], dir).map(|h| h.distance);
+        assert!(
+            d.zip(want).is_some_and(|(d, w)| (d - w).abs() < 1e-9),
+            "{dir:?}: {d:?}"
+        );
+    }
+    assert!(
+        w.cast([40.0, 0.0, 1.2], [1.0, 0.0, 0.0])
+            .is_none_or(|h| h.distance > 60.0)
+    );
+}
+
+#[test]
+fn simulate3d_world_flag_selects_the_corridors() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_dpslam"))
+        .args(["simulate3d", "--world", "corridors", "--sweeps", "3"])
+        .args(["--rings", "2", "--columns", "16", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("3 sweeps") && text.contains("path 36"),
+        "{text}"
+    );
+    assert_eq!(read_tum(&dir.path().join("truth.tum")).unwrap().len(), 3);
+    // --world and --config exclude each other.
+    let both = std::process::Command::new(env!("CARGO_BIN_EXE_dpslam"))
+        .args([
+            "simulate3d",
+            "--world",
+            "corridors",
+            "--config",
+            "x.toml",
+            "--out",
+        ])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(!both.status.success());
+}

@@ -588,7 +588,7 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
 
 /// The source tree's git commit (short hash, "+ changes" when tracked files
 /// differ from it), if this build's source folder is a git checkout.
-fn source_commit() -> Option<String> {
+pub(crate) fn source_commit() -> Option<String> {
     let git = |args: &[&str]| {
         std::process::Command::new("git")
             .arg("-C")

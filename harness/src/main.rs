@@ -2,7 +2,8 @@
 //! with particles, likelihood backends). Run from the repository root, after
 //! `cargo build --release` (the accuracy suite maps each dataset with the
 //! `dpslam` binary that sits next to this one):
-//! `cargo run --release -p dpslam-bench -- accuracy`.
+//! `cargo run --release -p dpslam-bench -- accuracy`; the 3-D benchmark:
+//! `PATH=/path/to/kiss-icp/bin:$PATH cargo run --release -p dpslam-bench -- 3d`.
 
 use clap::{Parser, Subcommand};
 use std::path::{Path, PathBuf};
@@ -41,6 +42,10 @@ enum BenchCommand {
     Scaling(ScalingArgs),
     /// Scan-likelihood throughput on the CPU and GPU paths, and their difference (one JSON object).
     Likelihood(LikelihoodArgs),
+    /// map3d, KISS-ICP (if on the PATH) and odometry on long simulated 3-D
+    /// sequences, scored with ATE; writes docs/RESULTS-3D.md.
+    #[command(name = "3d")]
+    ThreeD(Bench3dArgs),
 }
 
 fn run(c: BenchCommand) -> dpslam::Result<()> {
@@ -48,6 +53,7 @@ fn run(c: BenchCommand) -> dpslam::Result<()> {
         BenchCommand::Accuracy(a) => run_accuracy(a),
         BenchCommand::Scaling(a) => run_scaling(a),
         BenchCommand::Likelihood(a) => run_likelihood(a),
+        BenchCommand::ThreeD(a) => run_3d(a),
     }
 }
 
@@ -249,6 +255,74 @@ fn run_scaling(a: ScalingArgs) -> dpslam::Result<()> {
     println!(
         "{}",
         serde_json::to_string(&report).map_err(|e| dpslam::Error::Invalid(e.to_string()))?
+    );
+    Ok(())
+}
+
+/// Options of `dpslam-bench 3d`.
+#[derive(clap::Args, Debug)]
+struct Bench3dArgs {
+    /// Two tiny sequences (8 sweeps each): a smoke test in seconds
+    #[arg(long)]
+    quick: bool,
+    /// Run only these sequences (comma-separated: building-seed5, corridors)
+    #[arg(long, value_delimiter = ',')]
+    only: Vec<String>,
+    /// Scratch folder for the sequences and runs (reused when present) [default: target/bench-3d]
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Folder for RESULTS-3D.md and results-3d/*.png [default: docs]
+    #[arg(long)]
+    docs: Option<PathBuf>,
+    /// Particles of the dpslam runs
+    #[arg(long, default_value_t = dpslam_bench::bench3d::DEFAULT_PARTICLES)]
+    particles: usize,
+    /// Worker threads of the dpslam runs [default: all cores]
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Do not run KISS-ICP even where `kiss_icp_pipeline` is on the PATH
+    #[arg(long)]
+    no_kiss: bool,
+    /// Reuse each method's earlier run on the same sequence and settings
+    /// (trajectory and recorded CPU, memory, time): rescore and redraw only
+    #[arg(long)]
+    reuse_runs: bool,
+}
+
+fn run_3d(a: Bench3dArgs) -> dpslam::Result<()> {
+    use dpslam_bench::bench3d::{Bench3dOptions, quick_sequences, run_bench3d};
+    let mut opts = Bench3dOptions::new(mapper()?);
+    if a.quick {
+        opts.sequences = quick_sequences();
+    }
+    if !a.only.is_empty() {
+        let known: Vec<String> = opts.sequences.iter().map(|s| s.name.clone()).collect();
+        if let Some(bad) = a.only.iter().find(|n| !known.contains(n)) {
+            return Err(dpslam::Error::Config(format!(
+                "bench 3d: no sequence {bad:?} (have {known:?})"
+            )));
+        }
+        opts.sequences.retain(|s| a.only.contains(&s.name));
+    }
+    if let Some(o) = a.out {
+        opts.out = o;
+    }
+    if let Some(d) = a.docs {
+        opts.docs = d;
+    }
+    if a.no_kiss {
+        opts.kiss_icp = None;
+    }
+    opts.particles = a.particles;
+    opts.reuse_runs = a.reuse_runs;
+    opts.threads = a.threads;
+    opts.command = std::env::args().collect::<Vec<_>>().join(" ");
+    let r = run_bench3d(&opts)?;
+    println!(
+        "bench 3d: {} sequences, {:.0} s -> {}",
+        r.sequences.len(),
+        r.total_wall_s,
+        opts.docs.join("RESULTS-3D.md").display()
     );
     Ok(())
 }

@@ -54,6 +54,10 @@ pub struct Plot {
     pub include_origin: bool,
     /// Series, drawn in order (later ones on top).
     pub series: Vec<Series>,
+    /// A point cloud drawn under the series as grey density (darker where
+    /// more points fall in a pixel): maps seen from above. Counts in the
+    /// data range like the series.
+    pub cloud: Vec<[f64; 2]>,
 }
 
 /// The mapping from data units to pixel coordinates of a rendered plot.
@@ -86,6 +90,7 @@ impl Plot {
             equal_aspect: false,
             include_origin: false,
             series: Vec::new(),
+            cloud: Vec::new(),
         }
     }
 
@@ -104,6 +109,7 @@ impl Plot {
             .series
             .iter()
             .flat_map(|s| s.points.iter())
+            .chain(self.cloud.iter())
             .filter(|p| p[0].is_finite() && p[1].is_finite());
         let mut x = [f64::INFINITY, f64::NEG_INFINITY];
         let mut y = x;
@@ -200,6 +206,28 @@ impl Plot {
         for row in t..=b {
             put(&mut img, l, row, AXIS);
             put(&mut img, r, row, AXIS);
+        }
+        if !self.cloud.is_empty() {
+            let (w, h) = (img.width() as usize, img.height() as usize);
+            let mut count = vec![0u32; w * h];
+            for p in self
+                .cloud
+                .iter()
+                .filter(|p| p[0].is_finite() && p[1].is_finite())
+            {
+                let q = frame.to_pixel(*p);
+                let (x, y) = (q[0].round() as i64, q[1].round() as i64);
+                if (i64::from(l)..=i64::from(r)).contains(&x)
+                    && (i64::from(t)..=i64::from(b)).contains(&y)
+                {
+                    count[y as usize * w + x as usize] += 1;
+                }
+            }
+            for (i, &c) in count.iter().enumerate().filter(|(_, c)| **c > 0) {
+                // One point: light grey; ten or more: dark grey.
+                let v = (200.0 - 140.0 * (f64::from(c).log10().min(1.0))) as u8;
+                img.put_pixel((i % w) as u32, (i / w) as u32, Rgb([v, v, v]));
+            }
         }
         for s in &self.series {
             let pts: Vec<Option<[f64; 2]>> = s

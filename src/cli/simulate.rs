@@ -36,7 +36,15 @@ pub struct Simulate3dArgs {
     /// `--sweeps 40 --rings 16 --columns 512 --gzip` gives data/sim3d.
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Number of sweeps, evenly spaced along the loop [default: 200].
+    /// Built-in world and path: `building` (a 23 m × 19 m building with a
+    /// mezzanine, a 70 m loop, 200 sweeps) or `corridors` (plain 3 m
+    /// corridors around a 360 m loop, features 17–34 m apart, 368 sweeps
+    /// ≈ 1 m apart). The options below override the preset's sweeps and
+    /// lidar; a `--config` file brings its own scene instead.
+    #[arg(long, value_enum, default_value_t = World::Building, conflicts_with = "config")]
+    world: World,
+    /// Number of sweeps, evenly spaced along the loop [default: the
+    /// world's, 200 or 368].
     #[arg(long)]
     sweeps: Option<usize>,
     /// Lidar rings (channels), from −25° to +15° elevation [default: 32].
@@ -53,6 +61,15 @@ pub struct Simulate3dArgs {
     /// options above override the file.
     #[arg(long, value_name = "FILE.toml")]
     config: Option<PathBuf>,
+}
+
+/// The built-in worlds of `dpslam simulate3d --world`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum World {
+    /// [`Sim3dConfig::default`]: the building with a mezzanine.
+    Building,
+    /// [`Sim3dConfig::corridors`]: the long, feature-poor corridor loop.
+    Corridors,
 }
 
 /// Runs `dpslam simulate2d` and prints a one-line summary.
@@ -75,7 +92,10 @@ pub fn run2d(a: Simulate2dArgs) -> dpslam::Result<()> {
 pub fn run3d(a: Simulate3dArgs) -> dpslam::Result<()> {
     let mut cfg = match &a.config {
         Some(path) => Sim3dConfig::load(path)?,
-        None => Sim3dConfig::default(),
+        None => match a.world {
+            World::Building => Sim3dConfig::default(),
+            World::Corridors => Sim3dConfig::corridors(),
+        },
     };
     if let Some(n) = a.sweeps {
         cfg.sweeps = n;

@@ -366,6 +366,153 @@ const WALL_THICKNESS: f64 = 0.2;
 /// Clear height of a doorway above its floor (m).
 const DOOR_HEIGHT: f64 = 2.1;
 
+// ------------------------------------------------------------ corridors ---
+
+/// Centre line of [`World3d::corridors`]: a rectilinear loop, counter-clockwise
+/// (m). Five left turns and one right turn; 360 m around.
+const CORRIDOR_LOOP: [[f64; 2]; 6] = [
+    [0.0, 0.0],
+    [110.0, 0.0],
+    [110.0, 40.0],
+    [70.0, 40.0],
+    [70.0, 70.0],
+    [0.0, 70.0],
+];
+/// Clear width of the corridors (m).
+const CORRIDOR_WIDTH: f64 = 3.0;
+/// Height of the corridors' walls (m).
+const CORRIDOR_WALL_HEIGHT: f64 = 3.0;
+/// Distances (m) between consecutive features along a corridor, cycled: no
+/// two stretches between features are alike, and most are long.
+const FEATURE_SPACING: [f64; 5] = [21.0, 34.0, 17.0, 28.0, 25.0];
+/// Features keep this far (m) from the corridor's corners.
+const FEATURE_CORNER_CLEARANCE: f64 = 4.0;
+
+/// What stands at one feature position of [`World3d::corridors`].
+#[derive(Clone, Copy)]
+enum Feature {
+    /// A doorway (1.2 m wide, lintel at [`DOOR_HEIGHT`]) into a closed
+    /// niche 1 m deep.
+    Niche,
+    /// A full-height pillar, 0.4 m square, against the wall.
+    Pillar,
+    /// A cabinet 1 m long, 0.5 m deep, 1.2 m tall, against the wall.
+    Cabinet,
+}
+
+impl World3d {
+    /// The long-corridor world: a loop of plain, 3 m wide, 3 m tall
+    /// corridors (no ceiling) whose centre line is the rectilinear polygon
+    /// (0, 0)–(110, 0)–(110, 40)–(70, 40)–(70, 70)–(0, 70), 360 m around,
+    /// on one flat floor.
+    ///
+    /// The walls are featureless except for a few features 17–34 m apart
+    /// (cycled spacings, alternating walls, kept 4 m from the corners):
+    /// doorways into shallow niches, pillars and cabinets. Between two
+    /// features, a sweep sees two parallel walls and the floor, which fix
+    /// the sensor across the corridor but not along it: the degenerate case
+    /// of LiDAR odometry and scan matching. Corners and features are the
+    /// only along-track references; the longest straight is 110 m, beyond
+    /// the lidar's default 60 m range.
+    pub fn corridors() -> Self {
+        let mut w = Builder::default();
+        let half = CORRIDOR_WIDTH / 2.0;
+        let t = WALL_THICKNESS;
+        let h = CORRIDOR_WALL_HEIGHT;
+        let n = CORRIDOR_LOOP.len();
+        // One floor under everything (niches included).
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for p in CORRIDOR_LOOP {
+            lo = [lo[0].min(p[0]), lo[1].min(p[1])];
+            hi = [hi[0].max(p[0]), hi[1].max(p[1])];
+        }
+        let margin = half + 3.0;
+        w.patch(
+            [lo[0] - margin, lo[1] - margin, 0.0],
+            [hi[0] - lo[0] + 2.0 * margin, 0.0, 0.0],
+            [0.0, hi[1] - lo[1] + 2.0 * margin, 0.0],
+        );
+        // +1 for a left turn at vertex i, −1 for a right turn.
+        let turn = |i: usize| {
+            let (a, b, c) = (
+                CORRIDOR_LOOP[(i + n - 1) % n],
+                CORRIDOR_LOOP[i],
+                CORRIDOR_LOOP[(i + 1) % n],
+            );
+            let cross = (b[0] - a[0]) * (c[1] - b[1]) - (b[1] - a[1]) * (c[0] - b[0]);
+            cross.signum()
+        };
+        let mut spacing = FEATURE_SPACING.iter().cycle();
+        let mut kinds = [Feature::Niche, Feature::Pillar, Feature::Cabinet]
+            .iter()
+            .cycle();
+        let mut side = 1.0;
+        for i in 0..n {
+            let (a, b) = (CORRIDOR_LOOP[i], CORRIDOR_LOOP[(i + 1) % n]);
+            let len = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
+            let d = [(b[0] - a[0]) / len, (b[1] - a[1]) / len];
+            let nrm = [-d[1], d[0]];
+            // (s along the edge, o across it, +left) to world.
+            let at = |s: f64, o: f64| [a[0] + s * d[0] + o * nrm[0], a[1] + s * d[1] + o * nrm[1]];
+            let mut block = |s0: f64, s1: f64, o0: f64, o1: f64, z0: f64, z1: f64| {
+                let (p, q) = (at(s0, o0), at(s1, o1));
+                w.solid(
+                    [p[0].min(q[0]), p[1].min(q[1]), z0],
+                    [p[0].max(q[0]), p[1].max(q[1]), z1],
+                );
+            };
+            // Features of this edge: (s, side, kind).
+            let mut features = Vec::new();
+            let mut s = FEATURE_CORNER_CLEARANCE + 2.0;
+            while s < len - FEATURE_CORNER_CLEARANCE - 1.2 {
+                features.push((s, side, *kinds.next().expect("cycle")));
+                side = -side;
+                s += spacing.next().expect("cycle");
+            }
+            // Walls: the inside wall of a turn stops at the other corridor's
+            // wall, the outside one runs on to close the corner.
+            let (ta, tb) = (turn(i), turn((i + 1) % n));
+            for sgn in [1.0, -1.0] {
+                let start = if ta == sgn { half } else { -half - t };
+                let end = if tb == sgn {
+                    len - half
+                } else {
+                    len + half + t
+                };
+                let (o0, o1) = (sgn * half, sgn * (half + t));
+                let mut from = start;
+                for &(fs, fside, kind) in &features {
+                    if fside != sgn || !matches!(kind, Feature::Niche) {
+                        continue;
+                    }
+                    let (g0, g1) = (fs, fs + 1.2);
+                    block(from, g0, o0, o1, 0.0, h);
+                    block(g0, g1, o0, o1, DOOR_HEIGHT, h);
+                    // The niche: back wall and two side walls, 1 m deep.
+                    let (back0, back1) = (sgn * (half + 1.0 + t), sgn * (half + 1.0 + 2.0 * t));
+                    block(g0 - t, g1 + t, back0, back1, 0.0, h);
+                    block(g0 - t, g0, o0, back0, 0.0, h);
+                    block(g1, g1 + t, o0, back0, 0.0, h);
+                    from = g1;
+                }
+                block(from, end, o0, o1, 0.0, h);
+            }
+            for &(fs, fside, kind) in &features {
+                let o = fside * half;
+                match kind {
+                    Feature::Niche => {}
+                    Feature::Pillar => block(fs, fs + 0.4, o, o - fside * 0.4, 0.0, h),
+                    Feature::Cabinet => block(fs, fs + 1.0, o, o - fside * 0.5, 0.0, 1.2),
+                }
+            }
+        }
+        World3d {
+            boxes: w.boxes,
+            patches: w.patches,
+        }
+    }
+}
+
 /// An opening in a wall: from `a` to `b` along the wall (m), from height
 /// `sill` to `top` (m).
 #[derive(Clone, Copy)]
@@ -572,6 +719,29 @@ impl Sim3dConfig {
             rings: 16,
             columns: 512,
             gzip: true,
+            ..Sim3dConfig::default()
+        }
+    }
+
+    /// The long-corridor preset (`dpslam simulate3d --world corridors`):
+    /// [`World3d::corridors`], driven once around its 360 m loop from
+    /// (5, 0) and on past the start to (15, 0) (≈ 367 m in all, corners
+    /// rounded with 1.5 m arcs), one sweep every ≈ 1 m (368 sweeps), the
+    /// default lidar (32 × 1024 rays, 60 m range) and odometry noise.
+    pub fn corridors() -> Self {
+        Sim3dConfig {
+            waypoints: vec![
+                [5.0, 0.0],
+                [110.0, 0.0],
+                [110.0, 40.0],
+                [70.0, 40.0],
+                [70.0, 70.0],
+                [0.0, 70.0],
+                [0.0, 0.0],
+                [15.0, 0.0],
+            ],
+            sweeps: 368,
+            world: Some(World3d::corridors()),
             ..Sim3dConfig::default()
         }
     }
