@@ -41,14 +41,8 @@ pub struct Stamp<P> {
     pub pose: P,
 }
 
-/// A particle: the current robot pose and the ancestry node holding its map.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Particle<P> {
-    /// Robot pose in the map frame.
-    pub pose: P,
-    /// Most recent ancestry node of this particle.
-    pub node: NodeId,
-}
+// Defined below the filter: scan registration sees particles too.
+pub use crate::particle::Particle;
 
 /// A candidate pose drawn from a particle in the current step.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -20,7 +20,7 @@
 
 use crate::ancestry::{NodeId, Numbering};
 use crate::dpmap::DpMap;
-use crate::filter::Particle;
+use crate::particle::Particle;
 use crate::geometry::Pose;
 use crate::motion_model::MotionModel;
 use crate::scan::Scan;
