@@ -41,14 +41,8 @@ pub struct Stamp<P> {
     pub pose: P,
 }
 
-/// A particle: the current robot pose and the ancestry node holding its map.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Particle<P> {
-    /// Robot pose in the map frame.
-    pub pose: P,
-    /// Most recent ancestry node of this particle.
-    pub node: NodeId,
-}
+// Defined below the filter: scan registration sees particles too.
+pub use crate::particle::Particle;
 
 /// A candidate pose drawn from a particle in the current step.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -263,17 +257,8 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     where
         Scan<D, P>: 's,
     {
-        let tree = AncestryTree::new(vec![Stamp {
-            scan: scan_index,
-            pose: initial,
-        }]);
+        let (tree, map, numbering) = plant(&laser, initial, scan_index, seeds);
         let root = tree.root();
-        let mut map = DpMap::new(laser.cell);
-        let mut numbering = Numbering::default();
-        tree.number(&mut numbering);
-        let mut view = map.view(&numbering, root);
-        let first = observe(&laser, |k| view.entry(k), seeds, false, false);
-        map.insert_fresh(root, &first.new);
         let particles = vec![
             Particle {
                 pose: initial,
@@ -314,19 +299,14 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     ) where
         Scan<D, P>: 's,
     {
-        let fresh = Self::seeded(
-            self.cfg.clone(),
-            self.laser.clone(),
-            Box::new(crate::motion_model::Exact),
-            seed,
-            initial,
-            scan_index,
-            seeds,
-        );
-        self.tree = fresh.tree;
-        self.map = fresh.map;
-        self.numbering = fresh.numbering;
-        self.particles = fresh.particles;
+        (self.tree, self.map, self.numbering) = plant(&self.laser, initial, scan_index, seeds);
+        self.particles = vec![
+            Particle {
+                pose: initial,
+                node: self.tree.root(),
+            };
+            self.cfg.particles
+        ];
         self.best = 0;
         self.seed = seed;
         self.steps = 0;
@@ -358,6 +338,17 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     /// Replaces the scan scorer (e.g. with the GPU backend).
     pub fn set_scorer(&mut self, scorer: Box<dyn Scorer<D, P>>) {
         self.scorer = Arc::from(scorer);
+    }
+
+    /// Replaces the scan scorer with one that others score with too (the
+    /// high level of hierarchical SLAM shares the low level's backend).
+    pub fn set_shared_scorer(&mut self, scorer: Arc<dyn Scorer<D, P>>) {
+        self.scorer = scorer;
+    }
+
+    /// The scan scorer in use, to score with elsewhere.
+    pub fn shared_scorer(&self) -> Arc<dyn Scorer<D, P>> {
+        self.scorer.clone()
     }
 
     /// Sets the scan registration that [`Proposal::ScanMatched`] steps use.
@@ -503,7 +494,6 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         log_ratio: &[f64],
         scan: &Scan<D, P>,
     ) -> Weights {
-        let start = |i: usize| log_ratio.get(i).copied().unwrap_or(0.0);
         let passes = self.cfg.passes.min(scan.beams.len().max(1));
         let ctx = ScoreContext {
             map: &self.map,
@@ -511,56 +501,26 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             laser: &self.laser,
             scan,
         };
-        let mut scores = vec![0.0f64; samples.len()];
-        let mut alive: Vec<usize> = (0..samples.len()).collect();
-        let mut survivors = [0usize; 2];
-        let mut secs = [0.0f64; 2];
-        for (round, trace) in [Trace::Quick, Trace::Full].into_iter().enumerate() {
-            if trace == Trace::Quick && !self.quick_culling {
-                survivors[round] = alive.len();
-                continue;
-            }
-            let t = std::time::Instant::now();
-            for &i in &alive {
-                scores[i] = start(i);
-            }
-            for pass in 0..passes {
-                let candidates: Vec<Candidate<P>> = alive
-                    .iter()
-                    .map(|&i| Candidate {
-                        node: self.particles[samples[i].parent].node,
-                        pose: samples[i].pose,
-                    })
-                    .collect();
-                let subset = BeamSubset {
-                    first: pass,
-                    stride: passes,
-                };
-                let partial = self.scorer.score(&ctx, &candidates, subset, trace);
-                for (&i, s) in alive.iter().zip(partial) {
-                    scores[i] += s;
-                }
-                let best = alive
-                    .iter()
-                    .map(|&i| scores[i])
-                    .fold(f64::NEG_INFINITY, f64::max);
-                let threshold = best - self.cfg.cull_threshold;
-                alive.retain(|&i| scores[i] >= threshold);
-            }
-            survivors[round] = alive.len();
-            secs[round] = t.elapsed().as_secs_f64();
-        }
-        let mut out = vec![f64::NEG_INFINITY; samples.len()];
-        for &i in &alive {
-            out[i] = scores[i];
-        }
-        Weights {
-            scores: out,
-            after_quick: survivors[0],
-            after_full: survivors[1],
-            quick_s: secs[0],
-            full_s: secs[1],
-        }
+        let traces: &[Trace] = if self.quick_culling {
+            &[Trace::Quick, Trace::Full]
+        } else {
+            &[Trace::Full]
+        };
+        cull(
+            self.scorer.as_ref(),
+            &[ctx],
+            samples.len(),
+            |i, _| Candidate {
+                node: self.particles[samples[i].parent].node,
+                pose: samples[i].pose,
+            },
+            |i| log_ratio.get(i).copied().unwrap_or(0.0),
+            Culling {
+                traces,
+                passes,
+                threshold: self.cfg.cull_threshold,
+            },
+        )
     }
 
     /// Resample: indices of the samples that become the next particles,
@@ -622,13 +582,6 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         );
     }
 
-    /// The tree, the map and the numbering, for a caller that carries on
-    /// with them (the high level of hierarchical SLAM starts from the map of
-    /// a filter built on the first scan).
-    pub fn into_parts(self) -> (AncestryTree<Stamp<P>>, DpMap<D>, Numbering) {
-        (self.tree, self.map, self.numbering)
-    }
-
     /// The current particles.
     pub fn particles(&self) -> &[Particle<P>] {
         &self.particles
@@ -662,6 +615,110 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     /// The laser model in use.
     pub fn laser(&self) -> &LaserModel {
         &self.laser
+    }
+}
+
+/// A one-node ancestry tree holding `seeds` (scans at map poses) in a new
+/// map, its root recording input scan `scan_index` at `initial` (map
+/// frame); with its numbering. Every filter starts from one.
+pub fn plant<'s, const D: usize, P: Pose<D>>(
+    laser: &LaserModel,
+    initial: P,
+    scan_index: u32,
+    seeds: impl IntoIterator<Item = (P, &'s Scan<D, P>)>,
+) -> (AncestryTree<Stamp<P>>, DpMap<D>, Numbering)
+where
+    Scan<D, P>: 's,
+{
+    let tree = AncestryTree::new(vec![Stamp {
+        scan: scan_index,
+        pose: initial,
+    }]);
+    let root = tree.root();
+    let mut map = DpMap::new(laser.cell);
+    let mut numbering = Numbering::default();
+    tree.number(&mut numbering);
+    let mut view = map.view(&numbering, root);
+    let first = observe(laser, |k| view.entry(k), seeds, false, false);
+    map.insert_fresh(root, &first.new);
+    (tree, map, numbering)
+}
+
+/// How [`cull`] weighs samples.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Culling<'t> {
+    /// The rounds, in order: each starts every surviving sample's score
+    /// afresh and scores it with its trace (the release: quick, then full).
+    pub traces: &'t [Trace],
+    /// Passes per round (≥ 1): pass `k` scores beams `k, k + passes, …` of
+    /// every scan, then culls.
+    pub passes: usize,
+    /// Samples this many nats behind the best are culled after each pass.
+    pub threshold: f64,
+}
+
+/// Weighs `n` samples in culling passes (ch. 9): the log-likelihood of
+/// `scans` (one context each) for sample `i` at `candidate(i, j)` for scan
+/// `j`, on top of `start(i)` (nats). A sample falls out once it is
+/// `threshold` behind the best after a pass; culled samples get −∞.
+///
+/// Both levels of hierarchical SLAM weigh with it: the low level one scan
+/// per sample in several passes, the high level a window of scans per
+/// trajectory in one pass.
+pub fn cull<const D: usize, P: Pose<D>, S: Scorer<D, P> + ?Sized>(
+    scorer: &S,
+    scans: &[ScoreContext<'_, D, P>],
+    n: usize,
+    candidate: impl Fn(usize, usize) -> Candidate<P>,
+    start: impl Fn(usize) -> f64,
+    culling: Culling<'_>,
+) -> Weights {
+    let mut scores = vec![0.0f64; n];
+    let mut alive: Vec<usize> = (0..n).collect();
+    // Without a quick round nothing is culled before the full one.
+    let mut after_quick = n;
+    let mut secs = [0.0f64; 2];
+    for &trace in culling.traces {
+        let t = std::time::Instant::now();
+        for &i in &alive {
+            scores[i] = start(i);
+        }
+        for pass in 0..culling.passes {
+            let subset = BeamSubset {
+                first: pass,
+                stride: culling.passes,
+            };
+            for (j, ctx) in scans.iter().enumerate() {
+                let candidates: Vec<Candidate<P>> =
+                    alive.iter().map(|&i| candidate(i, j)).collect();
+                let partial = scorer.score(ctx, &candidates, subset, trace);
+                for (&i, s) in alive.iter().zip(partial) {
+                    scores[i] += s;
+                }
+            }
+            let best = alive
+                .iter()
+                .map(|&i| scores[i])
+                .fold(f64::NEG_INFINITY, f64::max);
+            let threshold = best - culling.threshold;
+            alive.retain(|&i| scores[i] >= threshold);
+        }
+        let round = usize::from(trace == Trace::Full);
+        if trace == Trace::Quick {
+            after_quick = alive.len();
+        }
+        secs[round] += t.elapsed().as_secs_f64();
+    }
+    let mut out = vec![f64::NEG_INFINITY; n];
+    for &i in &alive {
+        out[i] = scores[i];
+    }
+    Weights {
+        scores: out,
+        after_quick,
+        after_full: alive.len(),
+        quick_s: secs[0],
+        full_s: secs[1],
     }
 }
 

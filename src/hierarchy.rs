@@ -18,21 +18,23 @@
 //!   prune cycle as the low level, with a window's trajectory in place of a
 //!   pose.
 //!
-//! Both levels share one implementation of the map update and pruning
-//! ([`grow`], [`prune`]) and of resampling ([`draw`]).
+//! Both levels share one implementation of the start ([`plant`]), of
+//! weighing in culling passes ([`cull`]), resampling ([`draw`]), the map
+//! update and pruning ([`grow`], [`prune`]), and one scorer: the backend
+//! chosen for the low level scores the high level too.
 
 use crate::ancestry::{AncestryTree, NodeId, Numbering};
-use crate::config::{Config, FilterConfig, HierarchyConfig};
+use crate::config::{Config, HierarchyConfig, Resampling};
 use crate::dpmap::DpMap;
 use crate::filter::{
-    MapUpdate, Particle, ParticleFilter, Stamp, StepInput, StepStats, draw, grow, offspring, prune,
-    stream,
+    Culling, MapUpdate, Particle, ParticleFilter, Stamp, StepInput, StepStats, cull, draw, grow,
+    offspring, plant, prune, stream,
 };
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
 use crate::motion_model::MotionModel;
 use crate::scan::Scan;
-use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
+use crate::scorer::{Candidate, CpuScorer, ScoreContext, Scorer};
 use std::sync::Arc;
 
 /// What one high-level step (one window) did.
@@ -56,10 +58,14 @@ struct Segment<P> {
 }
 
 /// The high-level filter: particles over whole windows, each with a map of
-/// the whole run in one shared DP-map.
+/// the whole run in one shared DP-map. Its step is the low level's, built
+/// from the same pieces ([`cull`], [`draw`], [`grow`], [`offspring`],
+/// [`prune`]) with a window's trajectory in place of a pose.
 struct HighLevel<const D: usize, P: Pose<D>> {
     cfg: HierarchyConfig,
-    filter: FilterConfig,
+    /// Trajectories this many nats behind the best are culled (`[filter]`).
+    cull_threshold: f64,
+    resampling: Resampling,
     laser: LaserModel,
     perturb: Box<dyn MotionModel<D, P>>,
     tree: AncestryTree<Stamp<P>>,
@@ -68,7 +74,10 @@ struct HighLevel<const D: usize, P: Pose<D>> {
     particles: Vec<Particle<P>>,
     best: usize,
     update: MapUpdate,
-    scorer: Arc<CpuScorer<D>>,
+    /// The low level's scorer: `--backend` reaches both levels.
+    scorer: Arc<dyn Scorer<D, P>>,
+    /// The map update's per-thread map caches.
+    caches: CpuScorer<D>,
     seed: u64,
     steps: u64,
 }
@@ -100,46 +109,33 @@ impl<const D: usize, P: Pose<D>> HighLevel<D, P> {
     /// trajectories `cull_threshold` nats behind the best, then the full
     /// trace on the rest. Culled trajectories get −∞.
     fn weigh(&self, segments: &[Segment<P>], scans: &[&Scan<D, P>]) -> (Vec<f64>, usize) {
-        let mut alive: Vec<usize> = (0..segments.len()).collect();
-        let mut scores = vec![0.0f64; segments.len()];
-        let mut after_quick = 0;
-        for trace in [Trace::Quick, Trace::Full] {
-            for &i in &alive {
-                scores[i] = 0.0;
-            }
-            for (j, scan) in scans.iter().enumerate() {
-                let ctx = ScoreContext {
-                    map: &self.map,
-                    numbering: &self.numbering,
-                    laser: &self.laser,
-                    scan,
-                };
-                let candidates: Vec<Candidate<P>> = alive
-                    .iter()
-                    .map(|&i| Candidate {
-                        node: self.particles[segments[i].parent].node,
-                        pose: segments[i].poses[j],
-                    })
-                    .collect();
-                let part = self.scorer.score(&ctx, &candidates, BeamSubset::ALL, trace);
-                for (&i, s) in alive.iter().zip(part) {
-                    scores[i] += s;
-                }
-            }
-            let best = alive
-                .iter()
-                .map(|&i| scores[i])
-                .fold(f64::NEG_INFINITY, f64::max);
-            alive.retain(|&i| scores[i] >= best - self.filter.cull_threshold);
-            if trace == Trace::Quick {
-                after_quick = alive.len();
-            }
-        }
-        let mut out = vec![f64::NEG_INFINITY; segments.len()];
-        for &i in &alive {
-            out[i] = scores[i];
-        }
-        (out, after_quick)
+        let contexts: Vec<ScoreContext<'_, D, P>> = scans
+            .iter()
+            .map(|scan| ScoreContext {
+                map: &self.map,
+                numbering: &self.numbering,
+                laser: &self.laser,
+                scan,
+            })
+            .collect();
+        // One pass: a trajectory is culled on the whole window, never on
+        // some of its scans.
+        let w = cull(
+            self.scorer.as_ref(),
+            &contexts,
+            segments.len(),
+            |i, j| Candidate {
+                node: self.particles[segments[i].parent].node,
+                pose: segments[i].poses[j],
+            },
+            |_| 0.0,
+            Culling {
+                traces: &[Trace::Quick, Trace::Full],
+                passes: 1,
+                threshold: self.cull_threshold,
+            },
+        );
+        (w.scores, w.after_quick)
     }
 
     /// One window: predict → weigh → resample → update → prune. `scans`
@@ -151,12 +147,7 @@ impl<const D: usize, P: Pose<D>> HighLevel<D, P> {
         let segments = self.predict(windows);
         let (scores, after_quick) = self.weigh(&segments, scans);
         let mut rng = stream(self.seed, self.steps, u64::MAX);
-        let chosen = draw(
-            &scores,
-            self.cfg.particles,
-            self.filter.resampling,
-            &mut rng,
-        );
+        let chosen = draw(&scores, self.cfg.particles, self.resampling, &mut rng);
         let parents: Vec<NodeId> = chosen
             .iter()
             .map(|&c| self.particles[segments[c].parent].node)
@@ -165,7 +156,7 @@ impl<const D: usize, P: Pose<D>> HighLevel<D, P> {
             &mut self.map,
             &mut self.tree,
             &self.numbering,
-            &self.scorer,
+            &self.caches,
             &self.laser,
             self.update,
             &parents,
@@ -218,8 +209,8 @@ impl<const D: usize, P: Pose<D>> HierarchicalFilter<D, P> {
     /// A hierarchical filter with the settings of `cfg` (`[hierarchy]`,
     /// `[filter]`, `[map]`) whose low level is `low`, just built on the
     /// first scan `scan` (input index `scan_index`) at the origin. The high
-    /// level scores with the low level's laser model at
-    /// `hierarchy.variance` and draws the drift between windows from
+    /// level scores with the low level's scorer and laser model, the latter
+    /// at `hierarchy.variance`, and draws the drift between windows from
     /// `perturb` (applied to a particle's pose with a zero motion).
     pub fn new(
         low: ParticleFilter<D, P>,
@@ -228,54 +219,39 @@ impl<const D: usize, P: Pose<D>> HierarchicalFilter<D, P> {
         scan: &Scan<D, P>,
         scan_index: u32,
     ) -> Self {
-        let seed = cfg.seed;
-        let map = &cfg.map;
-        let filter = cfg.filter.clone();
         let laser = LaserModel {
             variance: cfg.hierarchy.variance,
             ..low.laser().clone()
         };
-        let cfg = cfg.hierarchy.clone();
         let origin = P::identity();
         // The high level starts like the low level: the first scan in its
         // root, every particle at the origin.
-        let mut seedling = ParticleFilter::new(
-            FilterConfig {
-                particles: cfg.particles,
-                ..filter.clone()
-            },
-            laser.clone(),
-            Box::new(crate::motion_model::Exact),
-            seed,
-            origin,
-            scan,
-            scan_index,
-        );
-        seedling.set_map_update(map);
-        let (tree, dp, numbering) = seedling.into_parts();
+        let (tree, map, numbering) = plant(&laser, origin, scan_index, [(origin, scan)]);
         let particles = vec![
             Particle {
                 pose: origin,
                 node: tree.root(),
             };
-            cfg.particles
+            cfg.hierarchy.particles
         ];
         let high = HighLevel {
+            cfg: cfg.hierarchy.clone(),
+            cull_threshold: cfg.filter.cull_threshold,
+            resampling: cfg.filter.resampling,
             update: MapUpdate {
-                shared: map.shared_free_space,
-                sharers: map.free_space_particles,
+                shared: cfg.map.shared_free_space,
+                sharers: cfg.map.free_space_particles,
             },
-            cfg,
-            filter,
             laser,
             perturb,
             tree,
-            map: dp,
+            map,
             numbering,
             particles,
             best: 0,
-            scorer: Arc::new(CpuScorer::new()),
-            seed: seed ^ 0x6869_6768, // "high": its streams differ from the low level's
+            scorer: low.shared_scorer(),
+            caches: CpuScorer::new(),
+            seed: cfg.seed ^ 0x6869_6768, // "high": its streams differ from the low level's
             steps: 0,
         };
         Self {
@@ -283,8 +259,17 @@ impl<const D: usize, P: Pose<D>> HierarchicalFilter<D, P> {
             high,
             window: vec![(scan_index, scan.clone())],
             windows: Vec::new(),
-            seed,
+            seed: cfg.seed,
         }
+    }
+
+    /// Scores both levels' scans with `scorer` (e.g. the GPU backend). Each
+    /// level's map differs, so a device scorer uploads the other map when
+    /// the levels take turns: twice per window.
+    pub fn set_scorer(&mut self, scorer: Box<dyn Scorer<D, P>>) {
+        let scorer: Arc<dyn Scorer<D, P>> = Arc::from(scorer);
+        self.low.set_shared_scorer(scorer.clone());
+        self.high.scorer = scorer;
     }
 
     /// One low-level step; closes the window (a high-level step) when it

@@ -493,7 +493,7 @@ pub fn search_seeds(
 
 /// [`align`] from the best of several starts. The first seed (the guess)
 /// is fitted on the coarsest level alone and scored by its consensus with
-/// that level as a fraction of the sweep's points ([`consensus`]); when
+/// that level as a fraction of the sweep's points (`consensus`); when
 /// that fraction is below `(1 − min_gain)·expected` (`expected`: what the
 /// last sweeps scored, `None` on the first), every other seed is fitted and
 /// scored the same way, and one replaces the guess only if it explains

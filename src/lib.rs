@@ -30,6 +30,7 @@ pub mod io;
 pub mod laser_model;
 pub mod motion_learning;
 pub mod motion_model;
+mod particle;
 pub mod pipeline;
 pub mod proposal;
 pub mod raycast;

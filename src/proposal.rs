@@ -20,9 +20,9 @@
 
 use crate::ancestry::{NodeId, Numbering};
 use crate::dpmap::DpMap;
-use crate::filter::Particle;
 use crate::geometry::Pose;
 use crate::motion_model::MotionModel;
+use crate::particle::Particle;
 use crate::scan::Scan;
 use nalgebra::{DMatrix, DVector};
 use rand_distr::{Distribution, StandardNormal};

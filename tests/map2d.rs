@@ -220,3 +220,62 @@ fn hierarchical_runs_close_every_window_and_follow_the_simulated_loop() {
         std::fs::read(out1.join("trajectory.tum")).unwrap()
     );
 }
+
+/// The CPU scorer, recording the laser variances (m²) it was asked to score
+/// with: one per level of hierarchical SLAM.
+struct Recording {
+    inner: dpslam::scorer::CpuScorer<2>,
+    variances: std::sync::Arc<std::sync::Mutex<Vec<f64>>>,
+}
+
+impl dpslam::scorer::Scorer<2, dpslam::geometry::Pose2> for Recording {
+    fn name(&self) -> &'static str {
+        "recording"
+    }
+
+    fn score(
+        &self,
+        ctx: &dpslam::scorer::ScoreContext<'_, 2, dpslam::geometry::Pose2>,
+        candidates: &[dpslam::scorer::Candidate<dpslam::geometry::Pose2>],
+        subset: dpslam::scorer::BeamSubset,
+        trace: dpslam::laser_model::Trace,
+    ) -> Vec<f64> {
+        let mut seen = self.variances.lock().unwrap();
+        if !seen.contains(&ctx.laser.variance) {
+            seen.push(ctx.laser.variance);
+        }
+        drop(seen);
+        self.inner.score(ctx, candidates, subset, trace)
+    }
+}
+
+#[test]
+fn the_chosen_scorer_scores_both_levels_of_hierarchical_slam() {
+    let mut cfg = small_config();
+    cfg.filter.particles = 10;
+    cfg.hierarchy.enabled = true;
+    cfg.hierarchy.window = 5;
+    cfg.hierarchy.particles = 5;
+    cfg.hierarchy.samples_per_particle = 2;
+    let variances = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let mut slam = dpslam::slam::Slam2d::new(cfg.clone()).unwrap();
+    slam.set_scorer(Box::new(Recording {
+        inner: dpslam::scorer::CpuScorer::new(),
+        variances: variances.clone(),
+    }))
+    .unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let log = prefix(SIM_LOG, 40, dir.path(), "sim.clf");
+    for scan in dpslam::io::log2d::open_log2d(&log).unwrap() {
+        let scan = scan.unwrap();
+        let stamp = scan.timestamp.unwrap_or(slam.scans() as f64);
+        slam.add_scan(stamp, scan.odometry, &scan.as_ranges())
+            .unwrap();
+    }
+    slam.finish();
+    assert!(slam.stats().len() > cfg.hierarchy.window, "too few steps");
+    let seen = variances.lock().unwrap().clone();
+    assert_eq!(seen.len(), 2, "variances scored with: {seen:?}");
+    assert!(seen.contains(&cfg.hierarchy.variance), "{seen:?}");
+    assert_eq!(slam.scorer().map(|s| s.name()), Some("recording"));
+}

@@ -439,7 +439,7 @@ impl Slam2d {
         self.levels.as_ref().map_or(0, Levels::tree_nodes)
     }
 
-    /// The scan scorer in use (the low level's, hierarchically).
+    /// The scan scorer in use (both levels', hierarchically).
     pub fn scorer(&self) -> Option<&dyn Scorer<2, Pose2>> {
         self.levels.as_ref().map(Levels::scorer)
     }
