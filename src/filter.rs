@@ -926,9 +926,14 @@ where
         }
     }
     let prior = laser.prior_distance as f32;
-    let mut new = Vec::with_capacity(acc.len() / 4);
+    // The cells in the order the map stores them: the look-ups below walk
+    // the map's memory in order instead of in hash order, and the new
+    // entries come out in storage order, as their insertion wants them.
+    let mut cells: Vec<(CellKey<D>, (f32, f32))> = acc.into_iter().collect();
+    cells.sort_unstable_by_key(|&(k, _)| storage_order(k));
+    let mut new = Vec::with_capacity(cells.len() / 4);
     let mut free = Vec::new();
-    for (k, (h, d)) in acc {
+    for (k, (h, d)) in cells {
         match entry_of(k) {
             Some(e) if shared_free && e.hits <= 0.0 && h <= 0.0 => {
                 if record_free {
@@ -939,9 +944,7 @@ where
             None => new.push((k, h, d + prior)),
         }
     }
-    // A fresh FxHashMap fed in beam order iterates in the same order on every
-    // run and thread, so the map edits (and float sums) are deterministic.
-    // New entries go in storage order: their insertion walks memory in order.
-    new.sort_unstable_by_key(|&(k, _, _)| storage_order(k));
+    // Keys are unique and sorted: the map edits (and float sums) are the
+    // same on every run and thread.
     Observation { new, free }
 }

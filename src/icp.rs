@@ -491,15 +491,32 @@ pub fn search_seeds(
     seeds
 }
 
-/// [`align`] from the best of several starts. The first seed (the guess)
-/// is fitted on the coarsest level alone and scored by its consensus with
-/// that level as a fraction of the sweep's points (`consensus`); when
-/// that fraction is below `(1 − min_gain)·expected` (`expected`: what the
-/// last sweeps scored, `None` on the first), every other seed is fitted and
-/// scored the same way, and one replaces the guess only if it explains
-/// `min_gain` more of the sweep: a prior that is right stays in charge, and
-/// costs one coarse fit. The full alignment runs from the winner. Returns
-/// it with the winner's consensus fraction.
+/// Distinct coarse optima refined through every level by [`align_wide`].
+const WIDE_REFINE: usize = 4;
+/// Metres of translation that weigh as much as a radian of rotation when
+/// [`align_wide`] asks which optimum is closest to the guess.
+const PRIOR_M_PER_RAD: f64 = 1.0;
+/// Two coarse optima closer than this in rotation (rad) ...
+const SAME_ROTATION: f64 = 0.087;
+
+/// [`align`] from the best of several starts, coarse to fine.
+///
+/// The first seed (the guess) is fitted on the coarsest level alone and
+/// scored by its consensus with that level as a fraction of the sweep's
+/// points (`consensus`). When that fraction is at least
+/// `(1 − min_gain)·expected` (`expected`: what the last sweeps scored,
+/// `None` on the first), the guess is trusted: the full alignment runs from
+/// it, and the search cost one coarse fit.
+///
+/// Otherwise every seed is fitted on the coarsest level; the optima are
+/// merged where they agree (within the coarsest voxel and 5°), the best
+/// [`WIDE_REFINE`] of them by coarse consensus, and the guess's, are
+/// aligned through all levels, and each is scored by its consensus with the
+/// finest level, which tells apart what the coarse level cannot (an optimum
+/// slid along a corridor, a floor taken for a ramp). Of those that explain
+/// at least `1 − min_gain` of what the best explains there, the one closest
+/// to the guess wins (the motion prior breaks the map's ties). Returns the winner with its coarse consensus fraction (the scale
+/// of `expected`).
 pub fn align_wide(
     map: &LocalMap,
     source: &[Vector3<f64>],
@@ -509,7 +526,7 @@ pub fn align_wide(
     expected: Option<f64>,
 ) -> Option<(Alignment, f64)> {
     let (first, rest) = seeds.split_first()?;
-    let Some(level) = map.levels.first() else {
+    let (Some(level), Some(finest)) = (map.levels.first(), map.levels.last()) else {
         return align(map, source, first, params).map(|a| (a, 0.0));
     };
     let src = thin(
@@ -526,25 +543,70 @@ pub fn align_wide(
         (Some(b), Some(e)) => b.1 >= (1.0 - min_gain) * e,
         _ => false,
     };
-    let mut start = (*first, base.map_or(0.0, |b| b.1));
-    if !good && !rest.is_empty() {
-        let mut best: Option<(Pose3, f64)> = None;
-        for seed in rest {
-            if let Some((p, c)) = score(seed)
-                && best.is_none_or(|b| c > b.1)
-            {
-                best = Some((p, c));
+    if good || rest.is_empty() {
+        return align(map, source, first, params).map(|a| (a, base.map_or(0.0, |b| b.1)));
+    }
+    // Coarse optima of every seed, best first (ties: seed order), merged
+    // where they agree.
+    let mut optima: Vec<(usize, Pose3, f64)> = seeds
+        .iter()
+        .enumerate()
+        .filter_map(|(i, s)| {
+            if i == 0 {
+                base.map(|(p, c)| (0, p, c))
+            } else {
+                score(s).map(|(p, c)| (i, p, c))
             }
-        }
-        match (base, best) {
-            (Some(b), Some(w)) if w.1 > b.1 + min_gain * b.1.max(expected.unwrap_or(0.0)) => {
-                start = w
-            }
-            (None, Some(w)) => start = w,
-            _ => {}
+        })
+        .collect();
+    optima.sort_by(|a, b| b.2.total_cmp(&a.2).then(a.0.cmp(&b.0)));
+    let mut distinct: Vec<(usize, Pose3, f64)> = Vec::new();
+    for o in optima {
+        let same = distinct.iter().any(|d| {
+            let e = d.1.inverse() * o.1;
+            e.translation.vector.norm() < level.voxel && e.rotation.angle() < SAME_ROTATION
+        });
+        if !same {
+            distinct.push(o);
         }
     }
-    align(map, source, &start.0, params).map(|a| (a, start.1))
+    let mut chosen: Vec<(usize, Pose3, f64)> = distinct.iter().take(WIDE_REFINE).copied().collect();
+    if let Some(g) = distinct.iter().find(|d| d.0 == 0)
+        && !chosen.iter().any(|c| c.0 == 0)
+    {
+        chosen.push(*g);
+    }
+    let fine_src = thin(
+        &voxel_downsample(source.iter().copied(), finest.voxel),
+        params.max_points,
+    );
+    let nf = fine_src.len().max(1) as f64;
+    let refined: Vec<(usize, Alignment, f64, f64)> = chosen
+        .iter()
+        .filter_map(|&(i, p, c)| {
+            let a = align(map, source, &p, params)?;
+            let f = consensus(finest, &fine_src, &a.pose) / nf;
+            Some((i, a, c, f))
+        })
+        .collect();
+    // The map alone cannot tell apart optima that explain the sweep about
+    // equally well (a corridor's corner seen turned by 90°, a slide along
+    // a corridor): among those within `min_gain` of the best, the motion
+    // prior decides, and the one closest to the guess wins.
+    let top = refined
+        .iter()
+        .map(|r| r.3)
+        .fold(f64::NEG_INFINITY, f64::max);
+    let off = |a: &Alignment| {
+        let e = first.inverse() * a.pose;
+        e.translation.vector.norm() + PRIOR_M_PER_RAD * e.rotation.angle()
+    };
+    let won = refined
+        .iter()
+        .filter(|r| r.3 >= (1.0 - min_gain) * top)
+        .copied()
+        .reduce(|b, r| if off(&r.1) < off(&b.1) { r } else { b })?;
+    Some((won.1, won.2))
 }
 
 /// The registration's memory: the down-sampled points of the last `window`

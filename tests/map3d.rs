@@ -297,3 +297,25 @@ fn shipped_simulated_sequence_is_mapped_to_centimetres() {
     assert_eq!(r.n, 40);
     assert!(r.rmse_m <= 0.05 && r.rot_mean_deg <= 0.5, "{r}");
 }
+
+/// The same sequence from the LiDAR alone (no prior: constant velocity and
+/// the wide start search of `icp::align_wide`), with corners of up to 67°
+/// between sweeps 1.74 m apart: SE(3) ATE at most 5 cm.
+#[test]
+fn shipped_simulated_sequence_from_the_lidar_alone() {
+    use dpslam::eval::ate::{Alignment, AteOptions, evaluate_ate};
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sim3d");
+    let out = tempfile::tempdir().unwrap();
+    let cfg = config(dpslam::pipeline::map3d::DEFAULT_PARTICLES_3D);
+    run_map3d(&dir.join("sweeps"), out.path(), &cfg, None).unwrap();
+    let truth = read_tum(&dir.join("truth.tum")).unwrap();
+    let est = read_tum(&out.path().join("trajectory.tum")).unwrap();
+    let opts = AteOptions {
+        alignment: Alignment::Se3,
+        ..AteOptions::default()
+    };
+    let r = evaluate_ate(&truth, &est, &opts).unwrap();
+    eprintln!("sim3d, LiDAR only: {r}");
+    assert_eq!(r.n, 40);
+    assert!(r.rmse_m <= 0.05 && r.rot_mean_deg <= 0.5, "{r}");
+}
