@@ -162,9 +162,12 @@ pub struct ScanMatchConfig {
     /// `filter.samples_per_particle`); particles that fall back to the
     /// motion model draw `filter.samples_per_particle`.
     pub samples_per_particle: usize,
-    /// Run the quick (endpoint-window) culling passes under this proposal:
-    /// they pay only when they cull, and matched samples nearly all survive.
+    /// Run the quick (endpoint-window) culling passes under this proposal.
     pub quick_culling: bool,
+    /// Register once per view group (from its first particle's guess)
+    /// instead of once per particle: cheaper, not shown to be as accurate
+    /// (docs/PROPOSAL-2D.md).
+    pub per_group: bool,
 }
 
 impl Default for ScanMatchConfig {
@@ -183,8 +186,9 @@ impl Default for ScanMatchConfig {
             min_std_xy: 0.01,
             min_std_theta: 0.002,
             min_overlap: 0.3,
-            samples_per_particle: 4,
-            quick_culling: false,
+            samples_per_particle: 3,
+            quick_culling: true,
+            per_group: false,
         }
     }
 }

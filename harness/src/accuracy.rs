@@ -124,7 +124,7 @@ impl Dataset {
 /// Settings of [`run_accuracy`].
 #[derive(Debug, Clone)]
 pub struct AccuracyOptions {
-    /// Short subset (simulator and the first scans of mit-csail).
+    /// Short subset (simulator and the first scans of the raw logs).
     pub quick: bool,
     /// Run folders go here.
     pub out: PathBuf,
@@ -479,7 +479,9 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
     let run_dir = dir.join("run");
     let cfg = d.config(&opts.cfg);
     if let Some(o) = d.sensor_offset {
-        notes.push(format!("laser pose {o:?} in the robot frame (sensor_offset)"));
+        notes.push(format!(
+            "laser pose {o:?} in the robot frame (sensor_offset)"
+        ));
     }
     let mapping = Instant::now();
     let (mut summary, peak) = match &opts.mapper {
@@ -493,15 +495,7 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
             let reset = reset_peak_memory();
             let s = if opts.learn_motion > 0 {
                 let backend = dpslam::backend::Backend::Cpu;
-                run_map2d_learning(
-                    &log,
-                    &run_dir,
-                    &cfg,
-                    backend,
-                    opts.learn_motion,
-                    |_| {},
-                )?
-                .0
+                run_map2d_learning(&log, &run_dir, &cfg, backend, opts.learn_motion, |_| {})?.0
             } else {
                 run_map2d(&log, &run_dir, &cfg)?
             };

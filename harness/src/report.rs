@@ -332,8 +332,7 @@ pub fn results_markdown(r: &AccuracyReport) -> String {
             s += &format!("- {}: {}\n", k.name, k.reason);
         }
     }
-    if r
-        .runs
+    if r.runs
         .iter()
         .any(|x| super::accuracy::PUBLISHED.iter().any(|p| p.0 == x.name))
     {
