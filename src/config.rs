@@ -142,9 +142,14 @@ pub struct ScanMatchConfig {
     pub sigma: f64,
     /// Endpoint likelihood far from anything seen (the field's floor, 0..1).
     pub floor: f64,
-    /// The score surface's weights are `exp(Δscore / temperature)`: beams
-    /// are not independent, and a temperature above 1 keeps the match's
-    /// covariance from being overconfident.
+    /// Hill-climbing levels of the sub-cell refinement on the interpolated
+    /// field (each halves the step; the first is half a field cell).
+    pub refine_levels: usize,
+    /// The match's information is the curvature of its score at the mode,
+    /// scaled to the DP likelihood's (field σ² / `laser.variance` × beams /
+    /// matched endpoints), divided by this: 1 draws from the Laplace
+    /// approximation of that likelihood × the motion prior; above 1 widens
+    /// the proposal.
     pub temperature: f64,
     /// Added to the match's x and y variance: std floor, m.
     pub min_std_xy: f64,
@@ -153,6 +158,16 @@ pub struct ScanMatchConfig {
     /// A match with fewer endpoints than this fraction on cells the view
     /// has seen is no match: the particle samples the motion model.
     pub min_overlap: f64,
+    /// Samples per particle whose proposal is a match (0:
+    /// `filter.samples_per_particle`); particles that fall back to the
+    /// motion model draw `filter.samples_per_particle`.
+    pub samples_per_particle: usize,
+    /// Run the quick (endpoint-window) culling passes under this proposal.
+    pub quick_culling: bool,
+    /// Register once per view group (from its first particle's guess)
+    /// instead of once per particle: cheaper, not shown to be as accurate
+    /// (docs/PROPOSAL-2D.md).
+    pub per_group: bool,
 }
 
 impl Default for ScanMatchConfig {
@@ -166,10 +181,14 @@ impl Default for ScanMatchConfig {
             max_beams: 90,
             sigma: 0.05,
             floor: 0.1,
-            temperature: 3.0,
+            refine_levels: 5,
+            temperature: 1.0,
             min_std_xy: 0.01,
             min_std_theta: 0.002,
             min_overlap: 0.3,
+            samples_per_particle: 3,
+            quick_culling: true,
+            per_group: false,
         }
     }
 }

@@ -56,7 +56,8 @@ pub struct Sample<P> {
 /// The outcome of [`ParticleFilter::predict`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Prediction<P> {
-    /// The drawn samples, `samples_per_particle` per particle in order.
+    /// The drawn samples, per particle in order (`samples_per_particle`
+    /// each, or the matched count where a scan match succeeded).
     pub samples: Vec<Sample<P>>,
     /// Per sample, `ln p_motion − ln q` (nats) to add to its scan
     /// log-likelihood ([`Proposal::log_ratio`]); empty for the motion
@@ -217,6 +218,8 @@ pub struct ParticleFilter<const D: usize, P: Pose<D>> {
     caches: Arc<CpuScorer<D>>,
     /// Registers scans for [`Proposal::ScanMatched`] (none: motion model).
     matcher: Option<Arc<dyn ScanRegistration<D, P>>>,
+    /// Samples per particle whose scan match succeeded (0: `samples_per_particle`).
+    matched_samples: usize,
 }
 
 impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
@@ -284,6 +287,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             quick_culling: true,
             caches: cpu,
             matcher: None,
+            matched_samples: 0,
         }
     }
 
@@ -333,6 +337,13 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     /// Samples drawn per particle from the next step on.
     pub fn set_samples_per_particle(&mut self, k: usize) {
         self.cfg.samples_per_particle = k.max(1);
+    }
+
+    /// Samples drawn by a particle whose [`Proposal::ScanMatched`] step
+    /// matched (0, the default: `samples_per_particle`); particles whose
+    /// match failed draw `samples_per_particle` from the motion model.
+    pub fn set_matched_samples_per_particle(&mut self, k: usize) {
+        self.matched_samples = k;
     }
 
     /// Replaces the scan scorer (e.g. with the GPU backend).
@@ -439,6 +450,13 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             _ => None,
         };
         let of = |i: usize| per_particle.as_ref().map_or(proposal, |v| &v[i]);
+        // Samples of particle `i`: fewer where its own match is sharp.
+        let count = |q: &Proposal<P>| match q {
+            Proposal::Matched { .. } if per_particle.is_some() && self.matched_samples > 0 => {
+                self.matched_samples
+            }
+            _ => k,
+        };
         // The motion proposal's densities cancel: its weights stay the bare
         // likelihoods, bit for bit as in the release.
         let weighted = !matches!(proposal, Proposal::Motion);
@@ -449,7 +467,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             .flat_map_iter(|(i, p)| {
                 let mut rng = stream(seed, step, i as u64);
                 let q = of(i);
-                (0..k)
+                (0..count(q))
                     .map(|_| {
                         let pose = q.sample(motion, &p.pose, odometry, &mut rng);
                         let r = if weighted {

@@ -3,7 +3,11 @@
 //!
 //! Datasets (read in place from the shared datasets folder):
 //! - **sim2d**: the simulator's loop shipped in `data/sim2d/` with its truth.
-//! - **mit-csail**: the raw log with the Kümmerle et al. relations.
+//! - **mit-csail**, **aces-raw**, **fr079-raw**: raw-odometry logs with the
+//!   Kümmerle et al. 2009 relations, beside that paper's published scan
+//!   matching / RBPF (GMapping, 50 particles) / graph mapping figures
+//!   ([`PUBLISHED`]); fr079-raw's laser is 0.04 m behind its odometry
+//!   (`[motion2d] sensor_offset = [-0.04, 0, 0]`, its dataset README).
 //! - **perturbed corrected logs** (fr079, aces and the others): the corrected
 //!   poses are the truth; the odometry is the truth corrupted by
 //!   [`dpslam::sim::perturb::perturb_log`] with the seed and noise model of
@@ -55,6 +59,19 @@ const BAD_TIMESTAMPS: [(&str, &str); 2] = [
     ),
 ];
 
+/// Kümmerle et al. 2009 (Auton. Robots 27(4), Table 1), mean translational
+/// relations error, m: (dataset, scan matching, RBPF = GMapping with 50
+/// particles, graph mapping).
+pub const PUBLISHED: [(&str, f64, f64, f64); 3] = [
+    ("mit-csail", 0.106, 0.049, 0.004),
+    ("aces-raw", 0.173, 0.060, 0.044),
+    ("fr079-raw", 0.258, 0.061, 0.056),
+];
+
+/// fr079-raw's laser pose in the robot frame: 0.04 m behind the odometry's
+/// reference point (the log's own laser offset is 0).
+pub const FR079_SENSOR_OFFSET: [f64; 3] = [-0.04, 0.0, 0.0];
+
 /// Where the reference comes from.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Source {
@@ -88,12 +105,26 @@ pub struct Dataset {
     pub source: Source,
     /// Keep only this many scans (`--quick`).
     pub max_scans: Option<usize>,
+    /// Laser pose in the robot frame for this log (`[motion2d]
+    /// sensor_offset`), where the log's own is wrong; `None`: the config's.
+    pub sensor_offset: Option<[f64; 3]>,
+}
+
+impl Dataset {
+    /// The mapping configuration of this dataset: `cfg` with its overrides.
+    pub fn config(&self, cfg: &Config) -> Config {
+        let mut cfg = cfg.clone();
+        if let Some(o) = self.sensor_offset {
+            cfg.motion2d.sensor_offset = Some(o);
+        }
+        cfg
+    }
 }
 
 /// Settings of [`run_accuracy`].
 #[derive(Debug, Clone)]
 pub struct AccuracyOptions {
-    /// Short subset (simulator and the first scans of mit-csail).
+    /// Short subset (simulator and the first scans of the raw logs).
     pub quick: bool,
     /// Run folders go here.
     pub out: PathBuf,
@@ -168,6 +199,7 @@ pub fn plan(opts: &AccuracyOptions) -> (Vec<Dataset>, Vec<Skipped>) {
                 truth: opts.sim_dir.join("truth.tum"),
             },
             max_scans: quick,
+            sensor_offset: None,
         },
         Dataset {
             name: "mit-csail".into(),
@@ -176,6 +208,25 @@ pub fn plan(opts: &AccuracyOptions) -> (Vec<Dataset>, Vec<Skipped>) {
                 relations: carmen.join("mit-csail/mit-csail.relations"),
             },
             max_scans: quick,
+            sensor_offset: None,
+        },
+        Dataset {
+            name: "aces-raw".into(),
+            source: Source::Raw {
+                log: carmen.join("aces-raw/aces-raw.clf.gz"),
+                relations: carmen.join("aces-raw/aces.relations"),
+            },
+            max_scans: quick,
+            sensor_offset: None,
+        },
+        Dataset {
+            name: "fr079-raw".into(),
+            source: Source::Raw {
+                log: carmen.join("fr079-raw/fr079-raw.clf.gz"),
+                relations: carmen.join("fr079-raw/fr079.relations"),
+            },
+            max_scans: quick,
+            sensor_offset: Some(FR079_SENSOR_OFFSET),
         },
     ];
     if !opts.quick {
@@ -208,6 +259,7 @@ pub fn plan(opts: &AccuracyOptions) -> (Vec<Dataset>, Vec<Skipped>) {
             name,
             source: Source::Corrected { log },
             max_scans: None,
+            sensor_offset: None,
         }));
     }
     let mut run = Vec::new();
@@ -425,11 +477,17 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
     };
 
     let run_dir = dir.join("run");
+    let cfg = d.config(&opts.cfg);
+    if let Some(o) = d.sensor_offset {
+        notes.push(format!(
+            "laser pose {o:?} in the robot frame (sensor_offset)"
+        ));
+    }
     let mapping = Instant::now();
     let (mut summary, peak) = match &opts.mapper {
         Some(exe) => {
             let config = dir.join("config.toml");
-            let s = map2d_process(exe, &log, &run_dir, &config, &opts.cfg, opts.learn_motion)?;
+            let s = map2d_process(exe, &log, &run_dir, &config, &cfg, opts.learn_motion)?;
             let peak = s.peak_memory_mib;
             (s, peak)
         }
@@ -437,17 +495,9 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
             let reset = reset_peak_memory();
             let s = if opts.learn_motion > 0 {
                 let backend = dpslam::backend::Backend::Cpu;
-                run_map2d_learning(
-                    &log,
-                    &run_dir,
-                    &opts.cfg,
-                    backend,
-                    opts.learn_motion,
-                    |_| {},
-                )?
-                .0
+                run_map2d_learning(&log, &run_dir, &cfg, backend, opts.learn_motion, |_| {})?.0
             } else {
-                run_map2d(&log, &run_dir, &opts.cfg)?
+                run_map2d(&log, &run_dir, &cfg)?
             };
             (s, dpslam::pipeline::peak_memory_mib().filter(|_| reset))
         }

@@ -105,7 +105,7 @@ fn run_likelihood(a: LikelihoodArgs) -> dpslam::Result<()> {
 /// Options of `dpslam-bench accuracy`.
 #[derive(clap::Args, Debug)]
 struct AccuracyArgs {
-    /// Short subset (the simulator and mit-csail, first 300 scans each): a smoke test
+    /// Short subset (the simulator and the raw logs mit-csail, aces-raw, fr079-raw, first 300 scans each): a smoke test
     #[arg(long)]
     quick: bool,
     /// Folder for the per-dataset runs [default: target/bench-accuracy]

@@ -199,6 +199,36 @@ pub fn results_table(runs: &[RunResult]) -> String {
     markdown_table(&RESULT_COLUMNS, &rows)
 }
 
+/// Ours beside Kümmerle et al. 2009's published figures (mean translational
+/// relations error, m) for each raw log that was run.
+pub fn published_table(runs: &[RunResult]) -> String {
+    let rows: Vec<Vec<String>> = super::accuracy::PUBLISHED
+        .iter()
+        .filter_map(|&(name, sm, rbpf, graph)| {
+            let r = runs.iter().find(|r| r.name == name)?;
+            Some(vec![
+                name.to_string(),
+                rel_trans(&r.relations),
+                rel_rot(&r.relations),
+                format!("{sm:.3}"),
+                format!("{rbpf:.3}"),
+                format!("{graph:.3}"),
+            ])
+        })
+        .collect();
+    markdown_table(
+        &[
+            "raw log",
+            "ours: relations trans m",
+            "ours: rot °",
+            "scan matching (published)",
+            "RBPF, GMapping 50 particles (published)",
+            "graph mapping (published)",
+        ],
+        &rows,
+    )
+}
+
 /// Published and measured reference points for mit-csail (relations error).
 pub fn anchors_table() -> String {
     let rows = [
@@ -301,6 +331,16 @@ pub fn results_markdown(r: &AccuracyReport) -> String {
         for k in &r.skipped {
             s += &format!("- {}: {}\n", k.name, k.reason);
         }
+    }
+    if r.runs
+        .iter()
+        .any(|x| super::accuracy::PUBLISHED.iter().any(|p| p.0 == x.name))
+    {
+        s += "\n## Raw logs beside Kümmerle et al. 2009\n\n";
+        s += "Mean translational relations error, m; published figures from \
+              Kümmerle et al., Auton. Robots 27(4), 2009, Table 1. A `--quick` run \
+              scores only the relations inside its subset.\n\n";
+        s += &published_table(&r.runs);
     }
     s += "\n## Anchors (mit-csail)\n\n";
     s += &anchors_table();

@@ -78,6 +78,16 @@ pub struct Map2dSummary {
     pub mean_after_quick: f64,
     /// Mean number of samples surviving all culling.
     pub mean_after_full: f64,
+    /// Mean number of samples drawn per step.
+    #[serde(default)]
+    pub mean_samples: f64,
+    /// Mean number of particles per step whose samples came from a scan
+    /// match (`filter.proposal = "scan-matched"`).
+    #[serde(default)]
+    pub mean_matched: f64,
+    /// Wall time of each phase of the filter steps, summed over the run, s.
+    #[serde(default, skip_deserializing)]
+    pub phases: crate::filter::PhaseTimes,
     /// Scan-likelihood backend used: "cpu", or "gpu", its precision and
     /// adapter, or "cpu (auto: why no GPU)".
     pub backend: String,
@@ -320,6 +330,12 @@ pub fn run_map2d_observed(
         tree_nodes: slam.tree_nodes(),
         mean_after_quick: stats.iter().map(|s| s.after_quick as f64).sum::<f64>() / n_steps,
         mean_after_full: stats.iter().map(|s| s.after_full as f64).sum::<f64>() / n_steps,
+        mean_samples: stats.iter().map(|s| s.samples as f64).sum::<f64>() / n_steps,
+        mean_matched: stats.iter().map(|s| s.matched as f64).sum::<f64>() / n_steps,
+        phases: stats.iter().fold(Default::default(), |mut a, s| {
+            a += s.times;
+            a
+        }),
         backend: backend_used,
         gpu_transfers: slam.scorer().and_then(|s| s.transfers()),
         warnings,

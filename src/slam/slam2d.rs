@@ -105,7 +105,10 @@ pub fn new_filter(
             cfg.scan_match.clone(),
             cdt,
             cfg.cell_size(),
+            cfg.laser.variance,
         )));
+        filter.set_matched_samples_per_particle(cfg.scan_match.samples_per_particle);
+        filter.set_quick_culling(cfg.scan_match.quick_culling);
     }
     filter
 }
