@@ -6,7 +6,7 @@
 //! - **mit-csail**, **aces-raw**, **fr079-raw**: raw-odometry logs with the
 //!   Kümmerle et al. 2009 relations, beside that paper's published scan
 //!   matching / RBPF (GMapping, 50 particles) / graph mapping figures
-//!   ([`PUBLISHED`]); fr079-raw's laser is 0.04 m behind its odometry
+//!   ([`PUBLISHED`](super::report::PUBLISHED)); fr079-raw's laser is 0.04 m behind its odometry
 //!   (`[motion2d] sensor_offset = [-0.04, 0, 0]`, its dataset README).
 //! - **perturbed corrected logs** (fr079, aces and the others): the corrected
 //!   poses are the truth; the odometry is the truth corrupted by
@@ -57,15 +57,6 @@ const BAD_TIMESTAMPS: [(&str, &str); 2] = [
         "csail-corrected",
         "time stamps printed with 6 significant digits (1.13486e+09)",
     ),
-];
-
-/// Kümmerle et al. 2009 (Auton. Robots 27(4), Table 1), mean translational
-/// relations error, m: (dataset, scan matching, RBPF = GMapping with 50
-/// particles, graph mapping).
-pub const PUBLISHED: [(&str, f64, f64, f64); 3] = [
-    ("mit-csail", 0.106, 0.049, 0.004),
-    ("aces-raw", 0.173, 0.060, 0.044),
-    ("fr079-raw", 0.258, 0.061, 0.056),
 ];
 
 /// fr079-raw's laser pose in the robot frame: 0.04 m behind the odometry's
