@@ -510,7 +510,7 @@ const SAME_ROTATION: f64 = 0.087;
 ///
 /// Otherwise every seed is fitted on the coarsest level; the optima are
 /// merged where they agree (within the coarsest voxel and 5°), the best
-/// [`WIDE_REFINE`] of them by coarse consensus, and the guess's, are
+/// `WIDE_REFINE` (4) of them by coarse consensus, and the guess's, are
 /// aligned through all levels, and each is scored by its consensus with the
 /// finest level, which tells apart what the coarse level cannot (an optimum
 /// slid along a corridor, a floor taken for a ramp). Of those that explain
