@@ -38,6 +38,11 @@ impl BeamSubset {
         first: 0,
         stride: 1,
     };
+
+    /// The items of `all` (a scan's beams) that this subset scores, in order.
+    pub fn select<'a, T>(&self, all: &'a [T]) -> impl Iterator<Item = &'a T> + 'a {
+        all.iter().skip(self.first).step_by(self.stride.max(1))
+    }
 }
 
 /// What every candidate of one scoring call shares.
@@ -151,11 +156,8 @@ impl<const D: usize> CpuScorer<D> {
         };
         let sensor = c.pose.compose(&ctx.scan.sensor);
         let origin = sensor.translation();
-        ctx.scan
-            .beams
-            .iter()
-            .skip(subset.first)
-            .step_by(subset.stride.max(1))
+        subset
+            .select(&ctx.scan.beams)
             .map(|b| {
                 ctx.laser.beam_log_likelihood(
                     &mut view,
@@ -198,13 +200,7 @@ impl<const D: usize, P: Pose<D>> Scorer<D, P> for CpuScorer<D> {
         let run = n
             .div_ceil(RUNS_PER_THREAD * rayon::current_num_threads().max(1))
             .max(1);
-        let beams: Vec<&crate::scan::Beam<D>> = ctx
-            .scan
-            .beams
-            .iter()
-            .skip(subset.first)
-            .step_by(subset.stride.max(1))
-            .collect();
+        let beams: Vec<&crate::scan::Beam<D>> = subset.select(&ctx.scan.beams).collect();
         let done: Vec<Vec<f64>> = order
             .par_chunks(run)
             .map(|ids| {

@@ -724,13 +724,7 @@ impl State {
         self.check_errors()?;
         let laser = ctx.laser;
         let cell = laser.cell;
-        let beams: Vec<_> = ctx
-            .scan
-            .beams
-            .iter()
-            .skip(subset.first)
-            .step_by(subset.stride.max(1))
-            .collect();
+        let beams: Vec<_> = subset.select(&ctx.scan.beams).collect();
         if candidates.is_empty() || beams.is_empty() {
             return Ok((vec![0.0; candidates.len()], CallStats::default()));
         }
