@@ -575,6 +575,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             &self.laser,
             update,
             &parents,
+            chosen,
             |i| [(samples[chosen[i]].pose, scan)],
             |i| {
                 vec![Stamp {
@@ -777,17 +778,27 @@ pub struct MapUpdate {
     pub sharers: usize,
 }
 
-/// Adds one ancestry node per new particle `i`, a child of `parents[i]`
-/// recording `payload(i)`, with its observation of `views(i)` (scans at map
-/// poses) made against the parent's view of the map. Returns the new nodes.
+/// Adds the ancestry nodes of the new particles: particle `i` copies sample
+/// `sources[i]` and is a child of `parents[i]` recording `payload(i)`, with
+/// its observation of `views(i)` (scans at map poses) made against the
+/// parent's view of the map. Returns each particle's node.
 ///
-/// Observations go in chunks of particles (in index order), each chunk
-/// traced in parallel. The new entries of every particle wait for all
-/// observations (they are made against the parents' views), but the
-/// free-space parts are folded as each chunk ends into the running path
-/// length of each (owner, cell): one value per pair instead of one per
-/// particle, and the same float additions, in the same order, as adding each
-/// particle's share in place.
+/// Particles that copy the same sample (runs of equal `sources`: [`draw`]
+/// returns the chosen samples in ascending order) are the same particle:
+/// they share one node, so the sample is traced once and its entries stored
+/// once. Every view of the map is the same as with one node per copy (the
+/// copies' entries would be equal), and the free-space shares below are
+/// still added once per copy, in order, so the map's values are too. With a
+/// sharp proposal most of the chosen samples are copies: this is most of
+/// the map update's work and memory.
+///
+/// Observations go in chunks of distinct samples (in index order), each
+/// chunk traced in parallel. The new entries wait for all observations
+/// (they are made against the parents' views), but the free-space parts are
+/// folded as each chunk ends into the running path length of each (owner,
+/// cell): one value per pair instead of one per particle, and the same
+/// float additions, in the same order, as adding each particle's share in
+/// place.
 #[allow(clippy::too_many_arguments)]
 pub fn grow<'s, const D: usize, P: Pose<D>, T: Clone, V>(
     map: &mut DpMap<D>,
@@ -797,6 +808,7 @@ pub fn grow<'s, const D: usize, P: Pose<D>, T: Clone, V>(
     laser: &LaserModel,
     update: MapUpdate,
     parents: &[NodeId],
+    sources: &[usize],
     views: impl Fn(usize) -> V + Sync,
     mut payload: impl FnMut(usize) -> Vec<T>,
 ) -> Vec<NodeId>
@@ -805,6 +817,7 @@ where
     Scan<D, P>: 's,
 {
     let n = parents.len();
+    debug_assert_eq!(sources.len(), n);
     let sharers = match update.sharers {
         0 => n,
         m => m.min(n),
@@ -812,44 +825,53 @@ where
     // Exactly `sharers` of the indices 0..n pass, evenly spread.
     let shares = |i: usize| (i * sharers) % n < sharers;
     let share = 1.0 / sharers.max(1) as f32;
+    // The first particle of each run of copies, and where its run ends.
+    let firsts: Vec<usize> = (0..n)
+        .filter(|&i| i == 0 || sources[i] != sources[i - 1])
+        .collect();
+    let run_end = |r: usize| firsts.get(r + 1).copied().unwrap_or(n);
     let chunk = (8 * rayon::current_num_threads()).max(16);
-    let mut new_entries: Vec<Vec<(CellKey<D>, f32, f32)>> = Vec::with_capacity(n);
+    let mut new_entries: Vec<Vec<(CellKey<D>, f32, f32)>> = Vec::with_capacity(firsts.len());
     let mut free: FxHashMap<(NodeId, CellKey<D>), f32> = FxHashMap::default();
     let mut free_order: Vec<(NodeId, CellKey<D>)> = Vec::new();
-    for lo in (0..n).step_by(chunk) {
-        let hi = (lo + chunk).min(n);
+    for lo in (0..firsts.len()).step_by(chunk) {
+        let hi = (lo + chunk).min(firsts.len());
         let shared_map: &DpMap<D> = map;
         let observations: Vec<Observation<D>> = map_in_preorder(
             hi - lo,
-            |i| numbering.enter[parents[lo + i] as usize],
-            |i| {
+            |r| numbering.enter[parents[firsts[lo + r]] as usize],
+            |r| {
+                let i = firsts[lo + r];
                 let mut cache = caches.thread_cache();
-                let mut view = shared_map.view(numbering, parents[lo + i]);
+                let mut view = shared_map.view(numbering, parents[i]);
                 observe(
                     laser,
                     |k| view.entry_cached(&mut cache, k),
-                    views(lo + i),
+                    views(i),
                     update.shared,
-                    shares(lo + i),
+                    (i..run_end(lo + r)).any(shares),
                 )
             },
         );
-        for obs in observations {
-            for (owner, k, d) in obs.free {
-                let v = free.entry((owner, k)).or_insert_with(|| {
-                    free_order.push((owner, k));
-                    map.entry_of(owner, k).map_or(f32::NAN, |e| e.distance)
-                });
-                *v += d * share;
+        for (r, obs) in (lo..hi).zip(observations) {
+            for _copy in (firsts[r]..run_end(r)).filter(|&i| shares(i)) {
+                for &(owner, k, d) in &obs.free {
+                    let v = free.entry((owner, k)).or_insert_with(|| {
+                        free_order.push((owner, k));
+                        map.entry_of(owner, k).map_or(f32::NAN, |e| e.distance)
+                    });
+                    *v += d * share;
+                }
             }
             new_entries.push(obs.new);
         }
     }
     let mut nodes = Vec::with_capacity(n);
-    for (i, new) in new_entries.into_iter().enumerate() {
+    for (r, new) in new_entries.into_iter().enumerate() {
+        let i = firsts[r];
         let node = tree.add_child_records(parents[i], payload(i));
         map.insert_fresh(node, &new);
-        nodes.push(node);
+        nodes.extend(std::iter::repeat_n(node, run_end(r) - i));
     }
     // First-seen order: the map edits are the same on every run.
     for key in free_order {

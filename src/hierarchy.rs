@@ -160,6 +160,7 @@ impl<const D: usize, P: Pose<D>> HighLevel<D, P> {
             &self.laser,
             self.update,
             &parents,
+            &chosen,
             |i| {
                 let seg = &segments[chosen[i]];
                 seg.poses.iter().copied().zip(scans.iter().copied())

@@ -57,3 +57,29 @@ fn a_sample_of_particles_estimates_the_shared_free_space_update() {
     );
     assert_eq!(entries[0], entries[1]);
 }
+
+#[test]
+fn copies_of_one_sample_share_one_node_and_distinct_samples_do_not() {
+    let log = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sim2d/sim2d.clf");
+    let prepared = prepare_log(&log, &Config::default(), 1).unwrap();
+    let mut f = prepared.new_filter(50);
+    let mut shared_steps = 0;
+    for s in prepared.steps.iter().take(20) {
+        f.step(&s.input());
+        let particles = f.particles();
+        // Resampling copies a sample into every particle it picks: equal
+        // poses are one sample (two draws from the noise never coincide).
+        for a in particles {
+            for b in particles {
+                assert_eq!(a.pose == b.pose, a.node == b.node, "{a:?} vs {b:?}");
+            }
+        }
+        let mut nodes: Vec<_> = particles.iter().map(|p| p.node).collect();
+        nodes.sort_unstable();
+        nodes.dedup();
+        if nodes.len() < particles.len() {
+            shared_steps += 1;
+        }
+    }
+    assert!(shared_steps > 0, "no step resampled a sample twice");
+}
