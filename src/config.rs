@@ -329,9 +329,12 @@ pub struct Map3dConfig {
     /// start replaces the prior only when it explains this fraction more.
     pub search_min_gain: f64,
     /// Samples per particle in a step whose proposal is the scan matcher's
-    /// Gaussian (0: `filter.samples_per_particle`): they lie within the
-    /// matcher's uncertainty, so fewer cover it than the motion noise
-    /// needs.
+    /// Gaussian and whose match explains the sweep as well as the recent
+    /// sweeps did (within `search_min_gain`): they lie within the matcher's
+    /// uncertainty, so fewer cover it than the motion noise needs. A step
+    /// whose match explains the sweep less (a sharp turn, a new room) draws
+    /// `filter.samples_per_particle`, as without a match. 0: always
+    /// `filter.samples_per_particle`.
     pub matched_samples_per_particle: usize,
     /// Run the quick culling passes (`filter.passes` over the endpoint
     /// windows) before the full traces. Off by default in 3-D: samples
@@ -368,7 +371,7 @@ impl Default for Map3dConfig {
             search_yaw_step_deg: 15.0,
             search_yaw_max_deg: 90.0,
             search_min_gain: 0.1,
-            matched_samples_per_particle: 5,
+            matched_samples_per_particle: 3,
             quick_culling: false,
             points_voxel: 0.1,
         }

@@ -264,6 +264,7 @@ impl Slam3d {
                     m.search_yaw_step_deg,
                     m.search_yaw_max_deg,
                 );
+                let mut routine = false;
                 let alignment = local
                     .as_ref()
                     .and_then(|map| {
@@ -277,6 +278,12 @@ impl Slam3d {
                         )
                     })
                     .map(|(a, c)| {
+                        // A match that explains the sweep as well as the
+                        // recent ones did is sharp; one that explains it
+                        // less (a turn, a new room) is in doubt.
+                        routine = self
+                            .consensus
+                            .is_some_and(|e| c >= (1.0 - m.search_min_gain) * e);
                         // A slowly moving reference: one poor sweep does
                         // not lower the bar for the next.
                         self.consensus = Some(match self.consensus {
@@ -314,8 +321,10 @@ impl Slam3d {
                         )
                     })
                     .unwrap_or(Proposal::Motion);
+                // Few samples cover a sharp match; a match in doubt, or
+                // none, gets the motion model's count.
                 let k = match (&proposal, m.matched_samples_per_particle) {
-                    (Proposal::Matched { .. }, k) if k > 0 => k,
+                    (Proposal::Matched { .. }, k) if k > 0 && routine => k,
                     _ => self.cfg.filter.samples_per_particle,
                 };
                 filter.set_samples_per_particle(k);
