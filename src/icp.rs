@@ -20,6 +20,8 @@
 
 use crate::config::Map3dConfig;
 use crate::geometry::Pose3;
+use crate::points;
+use glam::Vec3A;
 use nalgebra::{Matrix3, Matrix6, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector6};
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
@@ -222,21 +224,24 @@ pub struct LocalMap {
 
 impl LocalMap {
     /// Builds the map from `(pose, points)` pairs: sensor-frame points (m)
-    /// and the pose mapping them into the map frame.
-    pub fn build(clouds: &[(Pose3, &[Vector3<f64>])], params: &IcpParams) -> Self {
+    /// and the pose mapping them into the map frame. The clouds are placed
+    /// and down-sampled on the f32 point path ([`crate::points`]).
+    pub fn build(clouds: &[(Pose3, &[Vec3A])], params: &IcpParams) -> Self {
+        let placed: Vec<Vec3A> = clouds
+            .iter()
+            .flat_map(|(pose, pts)| {
+                let a = points::affine(pose);
+                pts.iter().map(move |p| a.transform_point3a(*p))
+            })
+            .collect();
         let levels = params
             .levels
             .iter()
             .map(|&(voxel, radius)| {
-                let pts = voxel_downsample(
-                    clouds
-                        .iter()
-                        .flat_map(|(pose, pts)| {
-                            pts.iter().map(move |p| pose * nalgebra::Point3::from(*p))
-                        })
-                        .map(|p| p.coords),
-                    voxel,
-                );
+                let pts = points::voxel_downsample(placed.iter().copied(), voxel as f32)
+                    .into_iter()
+                    .map(points::to_f64)
+                    .collect();
                 Level::build(pts, voxel, radius)
             })
             .collect();
@@ -614,7 +619,7 @@ pub fn align_wide(
 #[derive(Debug, Clone)]
 pub struct SweepWindow {
     params: IcpParams,
-    recent: VecDeque<(u32, Vec<Vector3<f64>>)>,
+    recent: VecDeque<(u32, Vec<Vec3A>)>,
 }
 
 impl SweepWindow {
@@ -633,19 +638,14 @@ impl SweepWindow {
 
     /// Down-samples `points` (sensor frame, m) to the finest ICP voxel: the
     /// form in which sweeps are aligned and kept.
-    pub fn prepare(&self, points: &[[f32; 3]]) -> Vec<Vector3<f64>> {
+    pub fn prepare(&self, points: &[[f32; 3]]) -> Vec<Vec3A> {
         let finest = self.params.levels.last().map_or(0.2, |l| l.0);
-        voxel_downsample(
-            points
-                .iter()
-                .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)),
-            finest,
-        )
+        points::voxel_downsample(points::from_sweep(points), finest as f32)
     }
 
     /// Remembers sweep `index` (prepared points) and forgets the oldest
     /// beyond the window.
-    pub fn push(&mut self, index: u32, prepared: Vec<Vector3<f64>>) {
+    pub fn push(&mut self, index: u32, prepared: Vec<Vec3A>) {
         self.recent.push_back((index, prepared));
         while self.recent.len() > self.params.window {
             self.recent.pop_front();
@@ -661,18 +661,19 @@ impl SweepWindow {
     /// each placed with `pose_of(index)` (`None`: left out), from `initial`.
     pub fn align(
         &self,
-        prepared: &[Vector3<f64>],
+        prepared: &[Vec3A],
         initial: &Pose3,
         pose_of: impl Fn(u32) -> Option<Pose3>,
     ) -> Option<Alignment> {
         let map = self.local_map(pose_of)?;
-        align(&map, prepared, initial, &self.params)
+        let source: Vec<Vector3<f64>> = prepared.iter().copied().map(points::to_f64).collect();
+        align(&map, &source, initial, &self.params)
     }
 
     /// The local map of the remembered sweeps, each placed with
     /// `pose_of(index)` (`None`: left out); `None` if none is placed.
     pub fn local_map(&self, pose_of: impl Fn(u32) -> Option<Pose3>) -> Option<LocalMap> {
-        let clouds: Vec<(Pose3, &[Vector3<f64>])> = self
+        let clouds: Vec<(Pose3, &[Vec3A])> = self
             .recent
             .iter()
             .filter_map(|(i, pts)| pose_of(*i).map(|p| (p, pts.as_slice())))
@@ -764,7 +765,7 @@ mod tests {
         };
         let truth = Pose3::new(Vector3::new(0.3, 0.0, 0.0), Vector3::zeros());
         let map = LocalMap::build(
-            &[(Pose3::identity(), &floor(&Pose3::identity())[..])],
+            &[(Pose3::identity(), &to_vec3a(&floor(&Pose3::identity()))[..])],
             &params,
         );
         let got = align(&map, &floor(&truth), &truth, &params).expect("aligned");
@@ -797,7 +798,7 @@ mod tests {
     fn too_few_points_is_no_alignment() {
         let params = IcpParams::from_config(&Map3dConfig::default());
         let map = LocalMap::build(
-            &[(Pose3::identity(), &[Vector3::new(1.0, 0.0, 0.0)][..])],
+            &[(Pose3::identity(), &[Vec3A::new(1.0, 0.0, 0.0)][..])],
             &params,
         );
         assert_eq!(map.len(), 1);
@@ -823,6 +824,12 @@ mod tests {
         assert_eq!(d.len(), 2);
         assert!((d[0] - Vector3::new(0.1, 0.1, 0.1)).norm() < 1e-12);
         assert!((d[1] - pts[1]).norm() < 1e-12);
+    }
+
+    fn to_vec3a(v: &[Vector3<f64>]) -> Vec<Vec3A> {
+        v.iter()
+            .map(|p| Vec3A::new(p.x as f32, p.y as f32, p.z as f32))
+            .collect()
     }
 
     fn to_f32(v: &[Vector3<f64>]) -> Vec<[f32; 3]> {

@@ -32,6 +32,7 @@ pub mod motion_learning;
 pub mod motion_model;
 mod particle;
 pub mod pipeline;
+pub mod points;
 pub mod proposal;
 pub mod raycast;
 pub mod scan;

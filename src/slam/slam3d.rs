@@ -46,27 +46,26 @@ use rustc_hash::FxHashMap;
 /// first point in input order and the stride is even.
 pub fn sweep_to_scan(points: &[[f32; 3]], m: &Map3dConfig) -> Scan<3, Pose3> {
     let mut seen: FxHashMap<[i32; 3], ()> = FxHashMap::default();
-    let mut kept: Vec<[f64; 3]> = Vec::new();
-    for p in points {
-        let v = [p[0] as f64, p[1] as f64, p[2] as f64];
-        let r = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-        if !r.is_finite() || r < m.min_range {
+    let mut kept: Vec<glam::Vec3A> = Vec::new();
+    let (min_range, beam_voxel) = (m.min_range as f32, m.beam_voxel as f32);
+    for p in crate::points::from_sweep(points) {
+        let r = p.length();
+        if !r.is_finite() || r < min_range {
             continue;
         }
-        let k = [
-            (v[0] / m.beam_voxel).floor() as i32,
-            (v[1] / m.beam_voxel).floor() as i32,
-            (v[2] / m.beam_voxel).floor() as i32,
-        ];
-        if seen.insert(k, ()).is_none() {
-            kept.push(v);
+        if seen
+            .insert(crate::points::voxel_of(p, beam_voxel), ())
+            .is_none()
+        {
+            kept.push(p);
         }
     }
     let stride = kept.len().div_ceil(m.max_beams).max(1);
     let beams = kept
         .iter()
         .step_by(stride)
-        .map(|v| {
+        .map(|&p| {
+            let v = [p.x as f64, p.y as f64, p.z as f64];
             let r = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
             let no_return = r > m.max_range;
             Beam {
@@ -231,6 +230,11 @@ impl Slam3d {
         self.stamps.push(stamp);
         let t = std::time::Instant::now();
         let prepared = self.window.prepare(points);
+        let source: Vec<nalgebra::Vector3<f64>> = prepared
+            .iter()
+            .copied()
+            .map(crate::points::to_f64)
+            .collect();
         self.proposal.prepare_s += t.elapsed().as_secs_f64();
         match self.filter.as_mut() {
             None => self.start(prior, &scan),
@@ -270,7 +274,7 @@ impl Slam3d {
                     .and_then(|map| {
                         crate::icp::align_wide(
                             map,
-                            &prepared,
+                            &source,
                             &seeds,
                             self.window.params(),
                             m.search_min_gain,
