@@ -14,6 +14,7 @@ use dpslam::filter::{ParticleFilter, StepInput};
 use dpslam::geometry::{Pose, Pose2, Pose3, pose2, xyt};
 use dpslam::laser_model::{LaserModel, Trace};
 use dpslam::motion_model::MotionModel;
+use dpslam::proposal::Proposal;
 use dpslam::scan::{Beam, Scan};
 use dpslam::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
 use dpslam::{Error, Result};
@@ -230,7 +231,25 @@ fn build<const D: usize, P: FixturePose<D>>(
     for i in 0..spec.steps {
         truth = truth.moved(stride);
         let scan = scan_at(world, &truth, sensor, dirs, max_range);
-        filter.step(&StepInput::motion(delta, &scan, i as u32 + 1));
+        if i + 1 < spec.steps {
+            filter.step(&StepInput::motion(delta, &scan, i as u32 + 1));
+            continue;
+        }
+        // The last step keeps the first sample of every particle instead
+        // of resampling: however sharp the likelihood (resampling would
+        // copy the best sample into every particle, one node), the
+        // candidates then see several views of the map.
+        let drawn = filter.predict(&delta, &Proposal::Motion, &scan);
+        let weights = filter.weigh(&drawn.samples, &scan);
+        let chosen: Vec<usize> = (0..filter.particles().len()).map(|j| j * samples).collect();
+        filter.update(
+            &drawn.samples,
+            &weights.scores,
+            &chosen,
+            &scan,
+            i as u32 + 1,
+        );
+        filter.prune();
     }
     let next = truth.moved(stride);
     let scan = scan_at(world, &next, sensor, dirs, max_range);
