@@ -92,24 +92,13 @@ fn voxel_of(p: &Vector3<f64>, size: f64) -> [i32; 3] {
     ]
 }
 
-/// Centroid down-sampling: one point per voxel of edge `size` (m), the mean
-/// of the points in it, in the order the voxels are first seen.
-pub fn voxel_downsample(
-    points: impl IntoIterator<Item = Vector3<f64>>,
-    size: f64,
-) -> Vec<Vector3<f64>> {
-    let mut slot: FxHashMap<[i32; 3], usize> = FxHashMap::default();
-    let mut acc: Vec<(Vector3<f64>, u32)> = Vec::new();
-    for p in points {
-        let k = voxel_of(&p, size);
-        let i = *slot.entry(k).or_insert_with(|| {
-            acc.push((Vector3::zeros(), 0));
-            acc.len() - 1
-        });
-        acc[i].0 += p;
-        acc[i].1 += 1;
-    }
-    acc.into_iter().map(|(s, n)| s / n as f64).collect()
+/// `source` (sensor frame, m) down-sampled to voxels of edge `size` m on the
+/// f32 point path, as f64 for the alignment's algebra.
+fn downsample(source: &[Vec3A], size: f64) -> Vec<Vector3<f64>> {
+    points::voxel_downsample(source.iter().copied(), size as f32)
+        .into_iter()
+        .map(points::to_f64)
+        .collect()
 }
 
 /// Keeps at most `max` points with an even stride (deterministic).
@@ -424,7 +413,7 @@ fn consensus(level: &Level, src: &[Vector3<f64>], pose: &Pose3) -> f64 {
 /// correspondences to be trusted (the caller keeps its prior then).
 pub fn align(
     map: &LocalMap,
-    source: &[Vector3<f64>],
+    source: &[Vec3A],
     initial: &Pose3,
     params: &IcpParams,
 ) -> Option<Alignment> {
@@ -433,10 +422,7 @@ pub fn align(
     let mut last = (0usize, 0.0f64);
     let mut info = Matrix6::<f64>::zeros();
     for level in &map.levels {
-        let src = thin(
-            &voxel_downsample(source.iter().copied(), level.voxel),
-            params.max_points,
-        );
+        let src = thin(&downsample(source, level.voxel), params.max_points);
         let fit = fit_level(level, &src, pose, params.iterations)?;
         pose = fit.pose;
         last = fit.last;
@@ -524,7 +510,7 @@ const SAME_ROTATION: f64 = 0.087;
 /// of `expected`).
 pub fn align_wide(
     map: &LocalMap,
-    source: &[Vector3<f64>],
+    source: &[Vec3A],
     seeds: &[Pose3],
     params: &IcpParams,
     min_gain: f64,
@@ -534,10 +520,7 @@ pub fn align_wide(
     let (Some(level), Some(finest)) = (map.levels.first(), map.levels.last()) else {
         return align(map, source, first, params).map(|a| (a, 0.0));
     };
-    let src = thin(
-        &voxel_downsample(source.iter().copied(), level.voxel),
-        params.max_points,
-    );
+    let src = thin(&downsample(source, level.voxel), params.max_points);
     let n = src.len().max(1) as f64;
     let score = |seed: &Pose3| -> Option<(Pose3, f64)> {
         let fit = fit_level(level, &src, *seed, params.iterations)?;
@@ -581,10 +564,7 @@ pub fn align_wide(
     {
         chosen.push(*g);
     }
-    let fine_src = thin(
-        &voxel_downsample(source.iter().copied(), finest.voxel),
-        params.max_points,
-    );
+    let fine_src = thin(&downsample(source, finest.voxel), params.max_points);
     let nf = fine_src.len().max(1) as f64;
     let refined: Vec<(usize, Alignment, f64, f64)> = chosen
         .iter()
@@ -666,8 +646,7 @@ impl SweepWindow {
         pose_of: impl Fn(u32) -> Option<Pose3>,
     ) -> Option<Alignment> {
         let map = self.local_map(pose_of)?;
-        let source: Vec<Vector3<f64>> = prepared.iter().copied().map(points::to_f64).collect();
-        align(&map, &source, initial, &self.params)
+        align(&map, prepared, initial, &self.params)
     }
 
     /// The local map of the remembered sweeps, each placed with
@@ -768,7 +747,7 @@ mod tests {
             &[(Pose3::identity(), &to_vec3a(&floor(&Pose3::identity()))[..])],
             &params,
         );
-        let got = align(&map, &floor(&truth), &truth, &params).expect("aligned");
+        let got = align(&map, &to_vec3a(&floor(&truth)), &truth, &params).expect("aligned");
         let c = got.covariance;
         // [ωx, ωy, ωz, tx, ty, tz]: roll, pitch and height are fixed by the
         // plane to well under a millimetre / a hundredth of a degree ...
@@ -805,25 +784,12 @@ mod tests {
         assert!(
             align(
                 &map,
-                &[Vector3::new(1.0, 0.0, 0.0)],
+                &[Vec3A::new(1.0, 0.0, 0.0)],
                 &Pose3::identity(),
                 &params
             )
             .is_none()
         );
-    }
-
-    #[test]
-    fn downsampling_keeps_one_centroid_per_voxel_in_first_seen_order() {
-        let pts = [
-            Vector3::new(0.05, 0.05, 0.05),
-            Vector3::new(1.05, 0.0, 0.0),
-            Vector3::new(0.15, 0.15, 0.15),
-        ];
-        let d = voxel_downsample(pts, 0.2);
-        assert_eq!(d.len(), 2);
-        assert!((d[0] - Vector3::new(0.1, 0.1, 0.1)).norm() < 1e-12);
-        assert!((d[1] - pts[1]).norm() < 1e-12);
     }
 
     fn to_vec3a(v: &[Vector3<f64>]) -> Vec<Vec3A> {

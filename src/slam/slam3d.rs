@@ -230,11 +230,6 @@ impl Slam3d {
         self.stamps.push(stamp);
         let t = std::time::Instant::now();
         let prepared = self.window.prepare(points);
-        let source: Vec<nalgebra::Vector3<f64>> = prepared
-            .iter()
-            .copied()
-            .map(crate::points::to_f64)
-            .collect();
         self.proposal.prepare_s += t.elapsed().as_secs_f64();
         match self.filter.as_mut() {
             None => self.start(prior, &scan),
@@ -274,7 +269,7 @@ impl Slam3d {
                     .and_then(|map| {
                         crate::icp::align_wide(
                             map,
-                            &source,
+                            &prepared,
                             &seeds,
                             self.window.params(),
                             m.search_min_gain,
