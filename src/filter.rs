@@ -786,11 +786,14 @@ pub struct MapUpdate {
 /// Particles that copy the same sample (runs of equal `sources`: [`draw`]
 /// returns the chosen samples in ascending order) are the same particle:
 /// they share one node, so the sample is traced once and its entries stored
-/// once. Every view of the map is the same as with one node per copy (the
-/// copies' entries would be equal), and the free-space shares below are
-/// still added once per copy, in order, so the map's values are too. With a
-/// sharp proposal most of the chosen samples are copies: this is most of
-/// the map update's work and memory.
+/// once. After this step every view of the map is the same as with one
+/// node per copy (the copies' entries would be equal, and the free-space
+/// shares below are still added once per copy, in order). Later steps
+/// differ only under `MapUpdate::shared`: the copies' descendants then pool
+/// their in-place shares on the one node's entries, where each copy's
+/// subtree used to feed its own (docs/PROPOSAL-2D.md measures what that
+/// costs on fr079-raw). With a sharp proposal most of the chosen samples
+/// are copies: this is most of the map update's work and memory.
 ///
 /// Observations go in chunks of distinct samples (in index order), each
 /// chunk traced in parallel. The new entries wait for all observations

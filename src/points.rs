@@ -7,7 +7,7 @@
 //! cloud crosses over once, after down-sampling, with [`to_f64`].
 
 use crate::geometry::Pose3;
-use glam::{Affine3A, Mat3A, Quat, Vec3A};
+use glam::{Affine3A, Quat, Vec3A};
 use nalgebra::Vector3;
 use rustc_hash::FxHashMap;
 
@@ -20,10 +20,8 @@ pub fn from_sweep(points: &[[f32; 3]]) -> impl Iterator<Item = Vec3A> + '_ {
 pub fn affine(pose: &Pose3) -> Affine3A {
     let q = pose.rotation.quaternion();
     let t = pose.translation.vector;
-    Affine3A::from_mat3_translation(
-        glam::Mat3::from(Mat3A::from_quat(Quat::from_xyzw(
-            q.i as f32, q.j as f32, q.k as f32, q.w as f32,
-        ))),
+    Affine3A::from_rotation_translation(
+        Quat::from_xyzw(q.i as f32, q.j as f32, q.k as f32, q.w as f32),
         glam::Vec3::new(t.x as f32, t.y as f32, t.z as f32),
     )
 }
