@@ -74,7 +74,7 @@ fn aces_bag_lists_its_topics_and_matches_the_carmen_log_of_the_same_recording() 
     let c = scans(&ds("carmen/aces-raw/aces-raw.clf.gz"));
     assert_eq!(b.len(), 7374);
     assert_eq!(c.len(), 7374);
-    let mut same_odo = 0;
+    let (mut same_odo, mut gap) = (0, 0.0);
     for (i, (x, y)) in b.iter().zip(&c).enumerate() {
         assert_eq!(x.ranges.len(), 180);
         // Header stamps are the log's ipc timestamps (µs in the log).
@@ -94,16 +94,19 @@ fn aces_bag_lists_its_topics_and_matches_the_carmen_log_of_the_same_recording() 
             }
         }
         let d = x.odometry.inverse() * y.odometry;
-        if d.translation.vector.norm() < 1e-5 && d.rotation.angle().abs() < 1e-5 {
+        if d.translation.vector.norm() < 0.2 && d.rotation.angle().abs() < 10f64.to_radians() {
             same_odo += 1;
         }
+        gap += d.translation.vector.norm();
     }
-    // The bag pairs each scan with the latest /odom at or before its stamp;
-    // the CARMEN log's FLASER lines carry the logger's own pairing, which
-    // for about 40 % of the scans is an ODOM message a few steps older.
+    // The bag interpolates /odom at each scan's stamp; the CARMEN log's
+    // FLASER lines carry the logger's own pairing, mostly the latest ODOM
+    // message, up to one odometry period (≈ 0.25 s) older: a few cm apart
+    // on average, more where the robot turns fast.
+    let mean_gap = gap / b.len() as f64;
     assert!(
-        same_odo * 2 > b.len(),
-        "odometry as in the CARMEN log for only {same_odo} of {} scans",
+        same_odo * 100 >= b.len() * 99 && mean_gap < 0.05,
+        "odometry near the CARMEN log's for only {same_odo} of {} scans, {mean_gap} m apart on average",
         b.len()
     );
 }
@@ -117,8 +120,11 @@ fn compressed_ros1_mcap_and_sqlite3_bags_hold_the_same_scans() {
         "ros/ros2/aces-head-sqlite3",
         "ros/ros2/aces-head-sqlite3/aces-head-sqlite3.db3",
     ] {
+        // The heads end at their 1000th scan: odometry after it was cut, so
+        // that scan's odometry is the last message's, not interpolated.
         let s = scans(&ds(rel));
-        same_scans(&s, &full[..1000], rel);
+        assert_eq!(s.len(), 1000, "{rel}");
+        same_scans(&s[..999], &full[..999], rel);
     }
     let mcap_dir = ds("ros/ros2/aces-mcap");
     assert_eq!(Bag::open(&mcap_dir).unwrap().storage, Storage::Mcap);
