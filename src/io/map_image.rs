@@ -23,22 +23,29 @@ pub struct OccupancyRaster {
     /// Map-frame position (m) of the lower-left corner of cell (0, 0).
     pub origin: [f64; 2],
     /// Occupancy probability per cell, row-major from the bottom row
-    /// (y = origin) up; `None` = unknown.
-    pub cells: Vec<Option<f32>>,
+    /// (y = origin) up; NaN = unknown. (4 bytes a cell: a building-sized
+    /// raster is tens of millions of cells, made while the map is held.)
+    pub cells: Vec<f32>,
 }
 
 impl OccupancyRaster {
-    /// 8-bit grey value of a cell in map_server's convention.
-    pub fn pixel(p: Option<f32>) -> u8 {
-        match p {
-            None => 205,
-            Some(p) => (254.0 - 254.0 * p.clamp(0.0, 1.0)).round() as u8,
+    /// 8-bit grey value of a cell in map_server's convention (NaN: unknown).
+    pub fn pixel(p: f32) -> u8 {
+        if p.is_nan() {
+            205
+        } else {
+            (254.0 - 254.0 * p.clamp(0.0, 1.0)).round() as u8
         }
     }
 
     /// Rows top to bottom as grey pixels.
     pub fn grey_top_down(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(self.width * self.height);
+        self.extend_grey_top_down(&mut out);
+        out
+    }
+
+    fn extend_grey_top_down(&self, out: &mut Vec<u8>) {
         for row in (0..self.height).rev() {
             out.extend(
                 self.cells[row * self.width..(row + 1) * self.width]
@@ -46,7 +53,6 @@ impl OccupancyRaster {
                     .map(|&p| Self::pixel(p)),
             );
         }
-        out
     }
 }
 
@@ -55,21 +61,26 @@ pub fn write_map(dir: &Path, stem: &str, raster: &OccupancyRaster) -> Result<()>
     if raster.width == 0 || raster.height == 0 {
         return Err(Error::Invalid("the map is empty: nothing to draw".into()));
     }
-    let grey = raster.grey_top_down();
-    let mut pgm = Vec::with_capacity(grey.len() + 64);
+    // One buffer: the PGM's pixels are the PNG's too.
+    let mut pgm = Vec::with_capacity(raster.width * raster.height + 64);
     write!(pgm, "P5\n{} {}\n255\n", raster.width, raster.height).expect("write to Vec");
-    pgm.extend_from_slice(&grey);
+    let header = pgm.len();
+    raster.extend_grey_top_down(&mut pgm);
     write_atomic(&dir.join(format!("{stem}.pgm")), &pgm)?;
     let yaml = format!(
         "image: {stem}.pgm\nresolution: {:.6}\norigin: [{:.6}, {:.6}, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n",
         raster.resolution, raster.origin[0], raster.origin[1]
     );
     write_atomic(&dir.join(format!("{stem}.yaml")), yaml.as_bytes())?;
-    let img = image::GrayImage::from_raw(raster.width as u32, raster.height as u32, grey)
-        .ok_or_else(|| Error::Invalid("map raster size mismatch".into()))?;
     let mut png = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-        .map_err(|e| Error::Invalid(format!("PNG encoding failed: {e}")))?;
+    image::ImageEncoder::write_image(
+        image::codecs::png::PngEncoder::new(&mut png),
+        &pgm[header..],
+        raster.width as u32,
+        raster.height as u32,
+        image::ExtendedColorType::L8,
+    )
+    .map_err(|e| Error::Invalid(format!("PNG encoding failed: {e}")))?;
     write_atomic(&dir.join(format!("{stem}.png")), &png)
 }
 
@@ -85,7 +96,7 @@ mod tests {
             height: 2,
             resolution: 0.05,
             origin: [-1.0, 2.0],
-            cells: vec![Some(1.0), None, Some(0.0), Some(0.5)],
+            cells: vec![1.0, f32::NAN, 0.0, 0.5],
         };
         write_map(dir.path(), "map", &r).unwrap();
         let pgm = std::fs::read(dir.path().join("map.pgm")).unwrap();

@@ -132,14 +132,14 @@ pub fn raster_of_view(
         .ok_or_else(|| Error::Invalid("the map is empty".into()))?;
     let width = (hi[0] - lo[0] + 1) as usize;
     let height = (hi[1] - lo[1] + 1) as usize;
-    let mut cells = vec![None; width * height];
+    let mut cells = vec![f32::NAN; width * height];
     let mut view = map.view(numbering, node);
     let c = map.cell_size();
     map.for_each_cell(|k, _| {
         if let Some((h, d)) = view.lookup(k) {
             let rho = if h > 0.0 { h as f64 / d as f64 } else { 0.0 };
             let i = (k[1] - lo[1]) as usize * width + (k[0] - lo[0]) as usize;
-            cells[i] = Some((1.0 - (-rho * DISPLAY_PATH).exp()) as f32);
+            cells[i] = (1.0 - (-rho * DISPLAY_PATH).exp()) as f32;
         }
     });
     Ok(OccupancyRaster {

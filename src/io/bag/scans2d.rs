@@ -76,7 +76,7 @@ impl Track {
     /// first or last pose outside the track (no extrapolation).
     ///
     /// Odometry and laser run on their own clocks: the latest pose at or
-    /// before a scan can be a whole odometry period old (≈ 0.25 s on the
+    /// before a scan can be a whole odometry period old (up to 0.25 s on the
     /// ACES robot, 11° while turning in place), where the bracketing pair
     /// puts it within a degree of what the robot's own logger paired.
     pub fn at(&self, t: i64) -> Option<Pose3> {
