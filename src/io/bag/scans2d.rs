@@ -77,8 +77,8 @@ impl Track {
     ///
     /// Odometry and laser run on their own clocks: the latest pose at or
     /// before a scan can be a whole odometry period old (up to 0.25 s on the
-    /// ACES robot, 11° while turning in place), where the bracketing pair
-    /// puts it within a degree of what the robot's own logger paired.
+    /// ACES robot, 11° while turning in place). Interpolating is what tf2
+    /// answers for a lookup at the scan's stamp.
     pub fn at(&self, t: i64) -> Option<Pose3> {
         let k = self.stamps_ns.partition_point(|&s| s <= t);
         let (a, b) = match (k.checked_sub(1), self.poses.get(k)) {
@@ -90,7 +90,9 @@ impl Track {
             (None, next) => return next.copied(),
         };
         let s = (t - a.0) as f64 / (b.0 - a.0) as f64;
-        Some(a.1.lerp_slerp(&b.1, s))
+        // `None` only for a degenerate rotation pair: keep the nearer pose.
+        let nearer = if s < 0.5 { a.1 } else { b.1 };
+        Some(a.1.try_lerp_slerp(&b.1, s, 1e-9).unwrap_or(nearer))
     }
 
     /// Poses in the track.
@@ -499,6 +501,16 @@ mod tests {
         }
         let yaw = planar(&wrap.at(5).unwrap()).rotation.angle();
         assert!((yaw.abs() - std::f64::consts::PI).abs() < 1e-9, "{yaw}");
+        // Half a turn apart (a glitched bag): either way round, no panic.
+        let mut half = Track::default();
+        for (ns, yaw) in [(0, 0.0), (10, std::f64::consts::PI)] {
+            half.push(ns, Isometry3::new(Vector3::zeros(), Vector3::z() * yaw));
+        }
+        let yaw = planar(&half.at(2).unwrap()).rotation.angle();
+        assert!(
+            (yaw.abs() - 0.2 * std::f64::consts::PI).abs() < 1e-9,
+            "{yaw}"
+        );
     }
 
     #[test]
