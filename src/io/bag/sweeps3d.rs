@@ -4,9 +4,10 @@
 //! [`SweepSource`] is the one interface: a count, the sweep at an index (its
 //! points in the sensor frame, and a prior pose when the input has one), and
 //! the sweep's time stamp. For a bag, the prior is the odometry at the
-//! cloud's header stamp (interpolated between the messages around it) composed with the sensor
-//! mount from the static transforms, as in 2-D; without odometry there is
-//! no prior (map3d then predicts with constant velocity). x y z may be
+//! cloud's header stamp (interpolated between the messages around it)
+//! composed with the sensor mount from the static transforms, as in 2-D;
+//! without odometry there is no prior (map3d then predicts with constant
+//! velocity). x y z may be
 //! float32 or float64 in either byte order; NaN points are dropped.
 
 use super::messages::PointCloud2;
