@@ -24,7 +24,6 @@ use crate::ancestry::{Change, NodeId, Numbering};
 use crate::raycast::CellKey;
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
-use smallvec::SmallVec;
 
 /// One node's cumulative observation of one cell.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -37,8 +36,8 @@ pub struct Entry {
     pub distance: f32,
 }
 
-/// A cell's observation list (unordered).
-pub type CellList = SmallVec<[Entry; 1]>;
+mod cell_list;
+pub use cell_list::CellList;
 
 const fn brick_bits(d: usize) -> u32 {
     if d <= 2 { 4 } else { 3 }
@@ -137,15 +136,6 @@ fn unsplit_local<const D: usize>(idx: usize) -> [usize; D] {
     local
 }
 
-/// Lists swell to O(particles) where particles disagree and shrink back once
-/// they agree: give the memory back when a list uses a quarter of its
-/// capacity, or the map would grow with time rather than area.
-fn give_back_spare(list: &mut CellList) {
-    if list.spilled() && list.len() * 4 <= list.capacity() {
-        list.shrink_to_fit();
-    }
-}
-
 /// The entry a particle with pre-order index `p` sees: the containing entry
 /// with the largest `enter` (the deepest ancestor).
 #[inline]
@@ -233,8 +223,7 @@ impl<const D: usize> DpMap<D> {
             .bricks
             .values()
             .flat_map(|b| b.cells.iter())
-            .filter(|c| c.spilled())
-            .map(|c| c.capacity() * std::mem::size_of::<Entry>())
+            .map(|c| c.heap_bytes())
             .sum();
         let index: usize = self
             .index
@@ -432,7 +421,7 @@ impl<const D: usize> DpMap<D> {
                     w += 1;
                 }
                 list.truncate(w);
-                give_back_spare(list);
+                list.give_back_spare();
                 self.entries -= removed;
             } else {
                 // Highest position first: the entry a swap moves comes from
@@ -454,7 +443,7 @@ impl<const D: usize> DpMap<D> {
     fn swap_out(&mut self, k: CellKey<D>, pos: u32) {
         let list = self.cell_mut(k);
         list.swap_remove(pos as usize);
-        give_back_spare(list);
+        list.give_back_spare();
         let moved = list.get(pos as usize).map(|e| e.node);
         self.entries -= 1;
         if let Some(m) = moved {
