@@ -399,6 +399,30 @@ pub struct FilterConfig {
     /// Proposal of the 2-D filter: `"motion"` or `"scan-matched"` (3-D
     /// always matches with ICP, see `map3d`).
     pub proposal: ProposalKind,
+    /// The pose each 2-D step records for the trajectory: `"sample"` (the
+    /// chosen sample itself, the release) or `"posterior-mean"` (the
+    /// importance-weighted mean of the samples drawn against the same map
+    /// view). The map is built at the samples either way. 3-D always
+    /// reports the sample (its ICP proposal reads the trajectory back).
+    pub report: ReportedPose,
+}
+
+/// The pose a filter step records in the trajectory (`filter.report`).
+///
+/// A particle filter's sample is a draw from the pose posterior, so a
+/// trajectory of samples carries the posterior's width as jitter from scan
+/// to scan. The samples drawn from one parent view (all particles on one
+/// ancestry node) are importance samples of the pose given that view and
+/// the scan; their weighted mean is the minimum-variance estimate of it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum ReportedPose {
+    /// The chosen sample (the release's trajectory).
+    Sample,
+    /// The weighted mean of its parent view's samples (culled samples
+    /// weigh nothing).
+    #[default]
+    PosteriorMean,
 }
 
 /// How the next particle set is drawn from the weighted samples.
@@ -532,6 +556,7 @@ impl Default for FilterConfig {
             min_rotation: 0.03,
             resampling: Resampling::Multinomial,
             proposal: ProposalKind::default(),
+            report: ReportedPose::default(),
         }
     }
 }

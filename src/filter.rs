@@ -17,7 +17,7 @@
 //!   tree and in the map alike.
 
 use crate::ancestry::{AncestryTree, NodeId, Numbering};
-use crate::config::{FilterConfig, MapConfig, Resampling};
+use crate::config::{FilterConfig, MapConfig, ReportedPose, Resampling};
 use crate::dpmap::{DpMap, storage_order};
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
@@ -567,6 +567,14 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             shared: self.shared_free_space,
             sharers: self.free_space_particles,
         };
+        let reported: Vec<P> = match self.cfg.report {
+            ReportedPose::Sample => chosen.iter().map(|&j| samples[j].pose).collect(),
+            ReportedPose::PosteriorMean => {
+                let groups =
+                    view_means(samples, scores, |j| self.particles[samples[j].parent].node);
+                parents.iter().map(|n| groups[n]).collect()
+            }
+        };
         let nodes = grow(
             &mut self.map,
             &mut self.tree,
@@ -580,7 +588,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             |i| {
                 vec![Stamp {
                     scan: scan_index,
-                    pose: samples[chosen[i]].pose,
+                    pose: reported[i],
                 }]
             },
         );
@@ -767,6 +775,55 @@ pub fn draw(scores: &[f64], n: usize, resampling: Resampling, rng: &mut Pcg64) -
     };
     chosen.sort_unstable();
     chosen
+}
+
+/// Per parent view (the samples whose particles sit on one ancestry node,
+/// `view_of(j)`: draws from one proposal against one map view), the
+/// importance-weighted mean pose, weights `exp(score − best)` (culled
+/// samples weigh nothing). The mean is taken in the body frame of the
+/// view's best sample ([`Pose::perturbation_to`]), which is exact enough
+/// for samples centimetres and fractions of a degree apart, and summed in
+/// sample order, so it is the same on every thread count. A view whose
+/// samples were all culled keeps its first sample.
+pub fn view_means<const D: usize, P: Pose<D>>(
+    samples: &[Sample<P>],
+    scores: &[f64],
+    view_of: impl Fn(usize) -> NodeId,
+) -> FxHashMap<NodeId, P> {
+    let mut best: FxHashMap<NodeId, (f64, usize)> = FxHashMap::default();
+    for (j, &score) in scores.iter().enumerate().take(samples.len()) {
+        let b = best.entry(view_of(j)).or_insert((score, j));
+        if score > b.0 {
+            *b = (score, j);
+        }
+    }
+    let mut sums: FxHashMap<NodeId, (f64, Vec<f64>)> = FxHashMap::default();
+    for (j, s) in samples.iter().enumerate() {
+        let (top, at) = best[&view_of(j)];
+        let w = (scores[j] - top).exp();
+        if w.is_nan() || w <= 0.0 {
+            continue;
+        }
+        let xi = samples[at].pose.perturbation_to(&s.pose);
+        let acc = sums.entry(view_of(j)).or_insert((0.0, vec![0.0; P::DOF]));
+        acc.0 += w;
+        for (a, x) in acc.1.iter_mut().zip(xi) {
+            *a += w * x;
+        }
+    }
+    best.into_iter()
+        .map(|(view, (_, at))| {
+            let anchor = samples[at].pose;
+            let pose = match sums.get(&view) {
+                Some((total, xi)) => {
+                    let mean: Vec<f64> = xi.iter().map(|x| x / total).collect();
+                    anchor.perturbed(&P::identity(), &mean)
+                }
+                None => anchor,
+            };
+            (view, pose)
+        })
+        .collect()
 }
 
 /// How [`grow`] records free space (see `MapConfig`).

@@ -83,3 +83,77 @@ fn copies_of_one_sample_share_one_node_and_distinct_samples_do_not() {
     }
     assert!(shared_steps > 0, "no step resampled a sample twice");
 }
+
+#[test]
+fn a_views_mean_weighs_its_samples_and_ignores_culled_ones() {
+    use dpslam::filter::{Sample, view_means};
+    use dpslam::geometry::{pose2, xyt};
+    let at = |x: f64, y: f64, t: f64, parent: usize| Sample {
+        pose: pose2(x, y, t),
+        parent,
+    };
+    // View 7: three samples, weights 1/3, 1 and 0 (culled); view 9: one.
+    let samples = [
+        at(0.0, 0.0, 0.0, 0),
+        at(0.1, 0.02, 0.01, 0),
+        at(5.0, 5.0, 1.0, 1),
+        at(1.0, 1.0, 0.3, 2),
+    ];
+    let scores = [-(3f64.ln()), 0.0, f64::NEG_INFINITY, -40.0];
+    let view = |j: usize| if samples[j].parent == 2 { 9 } else { 7 };
+    let means = view_means(&samples, &scores, view);
+    let (x, y, t) = xyt(&means[&7]);
+    // (0·1/3 + 0.1·1) / (4/3), and likewise for y and θ.
+    assert!((x - 0.075).abs() < 1e-4, "x {x}");
+    assert!((y - 0.015).abs() < 1e-4, "y {y}");
+    assert!((t - 0.0075).abs() < 1e-6, "θ {t}");
+    assert_eq!(means[&9], samples[3].pose, "a lone sample is its own mean");
+    // A view whose samples were all culled keeps its first sample.
+    let culled = [f64::NEG_INFINITY; 4];
+    assert_eq!(view_means(&samples, &culled, view)[&7], samples[0].pose);
+}
+
+#[test]
+fn reporting_the_posterior_mean_changes_the_trajectory_not_the_map() {
+    use dpslam::config::ReportedPose;
+    let log = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sim2d/sim2d.clf");
+    let mut runs = Vec::new();
+    for report in [ReportedPose::Sample, ReportedPose::PosteriorMean] {
+        let mut cfg = Config::default();
+        cfg.filter.report = report;
+        let prepared = prepare_log(&log, &cfg, 1).unwrap();
+        let mut f = prepared.new_filter(50);
+        for s in prepared.steps.iter().take(30) {
+            f.step(&s.input());
+        }
+        let mut map = Vec::new();
+        f.map().for_each_cell(|k, list| {
+            map.extend(
+                list.iter()
+                    .map(|e| (k, e.node, e.hits.to_bits(), e.distance.to_bits())),
+            )
+        });
+        map.sort_unstable();
+        let best = f.particles()[f.best_index()].pose;
+        runs.push((f.best_trajectory(), map, best));
+    }
+    let (sample, mean) = (&runs[0], &runs[1]);
+    assert_eq!(
+        sample.1, mean.1,
+        "the map is built at the samples either way"
+    );
+    assert_eq!(
+        sample.0.last().unwrap().pose,
+        sample.2,
+        "`sample` reports the sample"
+    );
+    let moved: Vec<f64> = sample
+        .0
+        .iter()
+        .zip(&mean.0)
+        .map(|(a, b)| (a.pose.translation.vector - b.pose.translation.vector).norm())
+        .collect();
+    // Means differ from samples by a fraction of the samples' spread (cm).
+    assert!(moved.iter().any(|&d| d > 1e-4), "no reported pose moved");
+    assert!(moved.iter().all(|&d| d < 0.05), "{moved:?}");
+}
