@@ -423,7 +423,8 @@ pub struct MapConfig {
     /// hits and newly seen cells are per particle as in the release. `false`
     /// restores the release's every-particle-every-cell update (slower, more memory).
     /// Copies of one resampled sample are one node (`filter::grow`): their
-    /// shares all land on the entries that node and its descendants see.
+    /// descendants' shares land on that node's entries, divided by its copies
+    /// in use (`filter::Copies`), as if each copy still had its own.
     pub shared_free_space: bool,
     /// With `shared_free_space`, at most this many of the new particles
     /// (evenly spread over them) add their path lengths to the shared entries,
