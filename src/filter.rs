@@ -791,13 +791,13 @@ pub fn draw(scores: &[f64], n: usize, resampling: Resampling, rng: &mut Pcg64) -
 /// from it, so [`prune`] recounts every node from the particles' copy
 /// indices and the children's labels (which copy of their parent they
 /// came from): counts fall as copies' subtrees die, as the per-copy
-/// entries did. When prune merges an only child into its parent, one copy
-/// of the parent is left (a child is one sample of one particle), but the
-/// merged node's count becomes the child's, since its children are the
-/// child's: the newest cells, the ones that had no free path yet, keep the
-/// per-copy rate, and the parent's older cells accrue more slowly than one
-/// entry per copy would (one count per node, not per entry). The root of a
-/// new map is one node for all particles, as it always was: one copy.
+/// entries did. Prune merges an only child into its parent only once the
+/// child has one copy in use: with several, the one copy of the parent
+/// that is left (a child is one sample of one particle) had several
+/// children before, and merging would give the parent's cells the child's
+/// count (one count per node, not per entry). So every node's count is
+/// that of the per-copy tree. The root of a new map is one node for all
+/// particles, as it always was: one copy.
 #[derive(Debug, Clone)]
 pub struct Copies {
     /// Per node: copies in use (1 for nodes not yet counted).
@@ -1033,7 +1033,11 @@ pub fn prune<const D: usize, T: Clone, P>(
     particles: &mut [Particle<P>],
 ) {
     let mut held: Vec<NodeId> = particles.iter().map(|p| p.node).collect();
-    let changes = tree.maintain(&mut held);
+    let mut changes = tree.remove_dead(&held);
+    // A child with several copies in use was several children before
+    // copies shared a node: it stays a node of its own until one is left.
+    copies.recount(tree, &held);
+    changes.extend(tree.collapse(&mut held, |c| copies.count(c) <= 1));
     map.apply(&changes);
     copies.recount(tree, &held);
     for (p, h) in particles.iter_mut().zip(held) {
@@ -1107,4 +1111,63 @@ where
     // Keys are unique and sorted: the map edits (and float sums) are the
     // same on every run and thread.
     Observation { new, free }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ancestry::Change;
+
+    #[test]
+    fn copies_count_the_copies_in_use_and_hold_back_merges() {
+        let mut tree = AncestryTree::new(vec![0u32]);
+        let root = tree.root();
+        let mut copies = Copies::planted(4);
+        // Generation 1: sample a picked twice, b twice (all from the root).
+        let a = tree.add_child(root, 1);
+        let b = tree.add_child(root, 1);
+        copies.grown(&[a, a, b, b], &[0, 1, 2, 3]);
+        let mut held = vec![a, a, b, b];
+        copies.recount(&tree, &held);
+        assert_eq!(
+            [copies.count(root), copies.count(a), copies.count(b)],
+            [1, 2, 2]
+        );
+        // Generation 2: c from particle 0 (copy 0 of a), d three times from
+        // particle 1 (copy 1 of a); b dies.
+        let c = tree.add_child(a, 2);
+        let d = tree.add_child(a, 2);
+        copies.grown(&[c, d, d, d], &[0, 1, 1, 1]);
+        held = vec![c, d, d, d];
+        assert!(!tree.remove_dead(&held).is_empty());
+        copies.recount(&tree, &held);
+        assert_eq!(
+            [copies.count(a), copies.count(c), copies.count(d)],
+            [2, 1, 3]
+        );
+        // Generation 3: only d's copy 2 (particle 3) has offspring, one
+        // sample picked four times: d has one copy in use, a one too.
+        let e = tree.add_child(d, 3);
+        copies.grown(&[e, e, e, e], &[3, 3, 3, 3]);
+        held = vec![e; 4];
+        tree.remove_dead(&held);
+        copies.recount(&tree, &held);
+        assert_eq!(
+            [copies.count(a), copies.count(d), copies.count(e)],
+            [1, 1, 4]
+        );
+        // d is absorbed (one copy), e is not (four copies, four children before).
+        let merged = tree.collapse(&mut held, |n| copies.count(n) <= 1);
+        assert!(merged.contains(&Change::Merged {
+            child: a,
+            into: root
+        }));
+        assert!(merged.contains(&Change::Merged {
+            child: d,
+            into: root
+        }));
+        assert_eq!(tree.children(root), &[e]);
+        copies.recount(&tree, &held);
+        assert_eq!([copies.count(root), copies.count(e)], [1, 4]);
+    }
 }
