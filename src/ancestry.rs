@@ -7,7 +7,8 @@
 //!
 //! Maintenance keeps the tree O(particles): childless nodes that no particle
 //! holds are removed (with their observations, by the caller), and a node with
-//! a single child absorbs that child. Both are reported as [`Change`]s so that
+//! a single child absorbs that child (unless the caller holds it back:
+//! [`AncestryTree::collapse`]). Both are reported as [`Change`]s so that
 //! the DP-map can apply the same edits to its observation lists. Node ids of
 //! removed nodes are recycled.
 //!
@@ -213,7 +214,9 @@ impl<T: Clone> AncestryTree<T> {
 
     /// The second half of [`AncestryTree::maintain`]: a node whose only
     /// child `c` passes `absorb(c)` absorbs it (repeatedly, down the
-    /// chain); entries of `held` are rewritten to the absorbing node.
+    /// chain); entries of `held` are rewritten to the absorbing node. The
+    /// filter holds back a child that several particles' copies still use
+    /// (`filter::Copies`): such a node keeps an only child.
     pub fn collapse(
         &mut self,
         held: &mut [NodeId],

@@ -1036,6 +1036,8 @@ pub fn prune<const D: usize, T: Clone, P>(
     let mut changes = tree.remove_dead(&held);
     // A child with several copies in use was several children before
     // copies shared a node: it stays a node of its own until one is left.
+    // (So a particle's parent node, the scan matcher's group in `predict`,
+    // is again, up to copies, the one it had with one node per copy.)
     copies.recount(tree, &held);
     changes.extend(tree.collapse(&mut held, |c| copies.count(c) <= 1));
     map.apply(&changes);
