@@ -7,7 +7,8 @@
 //!
 //! Maintenance keeps the tree O(particles): childless nodes that no particle
 //! holds are removed (with their observations, by the caller), and a node with
-//! a single child absorbs that child. Both are reported as [`Change`]s so that
+//! a single child absorbs that child (unless the caller holds it back:
+//! [`AncestryTree::collapse`]). Both are reported as [`Change`]s so that
 //! the DP-map can apply the same edits to its observation lists. Node ids of
 //! removed nodes are recycled.
 //!
@@ -176,6 +177,14 @@ impl<T: Clone> AncestryTree<T> {
     /// when a held node is merged into its parent. Returns the edits in the
     /// order they were made; the map must apply them in that order.
     pub fn maintain(&mut self, held: &mut [NodeId]) -> Vec<Change> {
+        let mut changes = self.remove_dead(held);
+        changes.extend(self.collapse(held, |_| true));
+        changes
+    }
+
+    /// The first half of [`AncestryTree::maintain`]: removes the childless
+    /// nodes that `held` does not hold, and the parents that leaves childless.
+    pub fn remove_dead(&mut self, held: &[NodeId]) -> Vec<Change> {
         let mut changes = Vec::new();
         let mut is_held = vec![false; self.nodes.len()];
         for &h in held.iter() {
@@ -200,6 +209,24 @@ impl<T: Clone> AncestryTree<T> {
                 stack.push(parent);
             }
         }
+        changes
+    }
+
+    /// The second half of [`AncestryTree::maintain`]: a node whose only
+    /// child `c` passes `absorb(c)` absorbs it (repeatedly, down the
+    /// chain); entries of `held` are rewritten to the absorbing node. The
+    /// filter holds back a child that several particles' copies still use
+    /// (`filter::Copies`): such a node keeps an only child.
+    pub fn collapse(
+        &mut self,
+        held: &mut [NodeId],
+        absorb: impl Fn(NodeId) -> bool,
+    ) -> Vec<Change> {
+        let mut changes = Vec::new();
+        let mut is_held = vec![false; self.nodes.len()];
+        for &h in held.iter() {
+            is_held[h as usize] = true;
+        }
         // Collapse: a node with one child absorbs it. Children are created after
         // their parents, so visiting parents before children is a pre-order walk.
         let mut order = Vec::with_capacity(self.live);
@@ -214,6 +241,9 @@ impl<T: Clone> AncestryTree<T> {
             }
             while self.nodes[n as usize].children.len() == 1 {
                 let c = self.nodes[n as usize].children[0];
+                if !absorb(c) {
+                    break;
+                }
                 let child = std::mem::take(&mut self.nodes[c as usize]);
                 for &g in &child.children {
                     self.nodes[g as usize].parent = n;
@@ -358,6 +388,22 @@ mod tests {
             .position(|c| *c == Change::Removed(b))
             .unwrap();
         assert!(pos_b1 < pos_b);
+    }
+
+    #[test]
+    fn collapse_keeps_only_children_that_absorb_refuses() {
+        let mut t = AncestryTree::new(vec![0u32]);
+        let r = t.root();
+        let a = t.add_child(r, 1);
+        let a1 = t.add_child(a, 2);
+        let mut held = vec![a1, a1];
+        assert!(t.remove_dead(&held).is_empty());
+        // `a` may not be absorbed, `a1` may: the chain keeps root → a.
+        let ch = t.collapse(&mut held, |c| c != a);
+        assert_eq!(ch, vec![Change::Merged { child: a1, into: a }]);
+        assert_eq!(held, vec![a, a]);
+        assert_eq!(t.children(r), &[a]);
+        assert_eq!(t.lineage(a), vec![0, 1, 2]);
     }
 
     #[test]

@@ -447,7 +447,8 @@ pub struct MapConfig {
     /// hits and newly seen cells are per particle as in the release. `false`
     /// restores the release's every-particle-every-cell update (slower, more memory).
     /// Copies of one resampled sample are one node (`filter::grow`): their
-    /// shares all land on the entries that node and its descendants see.
+    /// descendants' shares land on that node's entries, divided by its copies
+    /// in use (`filter::Copies`), as if each copy still had its own.
     pub shared_free_space: bool,
     /// With `shared_free_space`, at most this many of the new particles
     /// (evenly spread over them) add their path lengths to the shared entries,
@@ -456,6 +457,12 @@ pub struct MapConfig {
     /// sample keeps its cost (serial, ~10⁴ cells per particle and scan)
     /// independent of the particle count. 0 = every particle.
     pub free_space_particles: usize,
+    /// With `shared_free_space`, divide each in-place share by the owner
+    /// node's copies in use (`filter::Copies`), as if each resampled copy
+    /// still had its own entries; `false` pools them on the shared node
+    /// (faster-growing free space in new rooms: fr079-raw is lost). 2-D
+    /// only: the 3-D pipeline pools (docs/PROPOSAL-2D.md).
+    pub per_copy_shares: bool,
 }
 
 /// Laser penetration model (dissertation ch. 3) and beam selection.
@@ -567,6 +574,7 @@ impl Default for MapConfig {
             cells_per_metre: 35.0,
             shared_free_space: true,
             free_space_particles: 64,
+            per_copy_shares: true,
         }
     }
 }

@@ -198,6 +198,8 @@ pub struct ParticleFilter<const D: usize, P: Pose<D>> {
     motion: Arc<dyn MotionModel<D, P>>,
     tree: AncestryTree<Stamp<P>>,
     map: DpMap<D>,
+    /// Copies of each node's sample in use (the shared free-space update's scale).
+    copies: Copies,
     numbering: Numbering,
     particles: Vec<Particle<P>>,
     best: usize,
@@ -276,6 +278,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             motion: Arc::from(motion),
             tree,
             map,
+            copies: Copies::planted(particles.len()),
             numbering,
             particles,
             best: 0,
@@ -304,6 +307,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         Scan<D, P>: 's,
     {
         (self.tree, self.map, self.numbering) = plant(&self.laser, initial, scan_index, seeds);
+        self.copies = Copies::planted(self.cfg.particles).counting(self.copies.enabled);
         self.particles = vec![
             Particle {
                 pose: initial,
@@ -320,10 +324,12 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     /// the release's every-particle-every-cell update or the shared
     /// free-space update (`shared_free_space`, the default), and how many of
     /// the new particles feed the latter (`free_space_particles`, 0 = all;
-    /// until this is called, all).
+    /// until this is called, all), and whether their in-place shares are
+    /// divided by the owner's copies in use (`per_copy_shares`).
     pub fn set_map_update(&mut self, map: &MapConfig) {
         self.shared_free_space = map.shared_free_space;
         self.free_space_particles = map.free_space_particles;
+        self.copies.enabled = map.per_copy_shares;
     }
 
     /// Whether [`ParticleFilter::weigh`] runs the quick (endpoint-window)
@@ -559,10 +565,8 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         scan: &Scan<D, P>,
         scan_index: u32,
     ) -> usize {
-        let parents: Vec<NodeId> = chosen
-            .iter()
-            .map(|&j| self.particles[samples[j].parent].node)
-            .collect();
+        let origins: Vec<usize> = chosen.iter().map(|&j| samples[j].parent).collect();
+        let parents: Vec<NodeId> = origins.iter().map(|&p| self.particles[p].node).collect();
         let update = MapUpdate {
             shared: self.shared_free_space,
             sharers: self.free_space_particles,
@@ -582,8 +586,10 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             &self.caches,
             &self.laser,
             update,
+            &mut self.copies,
             &parents,
             chosen,
+            &origins,
             |i| [(samples[chosen[i]].pose, scan)],
             |i| {
                 vec![Stamp {
@@ -604,6 +610,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         prune(
             &mut self.tree,
             &mut self.map,
+            &mut self.copies,
             &mut self.numbering,
             &mut self.particles,
         );
@@ -826,6 +833,127 @@ pub fn view_means<const D: usize, P: Pose<D>>(
         .collect()
 }
 
+/// Which copies of each ancestry node's sample are still in use, to scale
+/// the shared free-space update's in-place shares (see [`grow`]).
+///
+/// Resampling copies a sample into every particle that picks it, and the
+/// copies share one node. With one node per copy (before 47e8d60) each copy
+/// had its own entries, fed only by its own descendants' in-place shares;
+/// on the shared node the descendants of all k copies feed the same
+/// entries, so cells accrued free path length up to k times faster and the
+/// scan-matched filter lost fr079-raw (docs/PROPOSAL-2D.md). [`grow`]
+/// divides each in-place share by its owner's [`Copies::count`], the
+/// number of copies with something alive below them: the shared entry then
+/// grows as the mean of the per-copy entries it stands for.
+///
+/// A copy is in use while a particle sits on it or a live child descends
+/// from it, so [`prune`] recounts every node from the particles' copy
+/// indices and the children's labels (which copy of their parent they
+/// came from): counts fall as copies' subtrees die, as the per-copy
+/// entries did. Prune merges an only child into its parent only once the
+/// child has one copy in use: with several, the one copy of the parent
+/// that is left (a child is one sample of one particle) had several
+/// children before, and merging would give the parent's cells the child's
+/// count (one count per node, not per entry). So every node's count is
+/// that of the per-copy tree. The root of a new map is one node for all
+/// particles, as it always was: one copy.
+#[derive(Debug, Clone)]
+pub struct Copies {
+    /// Off: every node counts as one copy (the shares pool, merges are
+    /// never held back; `map.per_copy_shares = false`).
+    enabled: bool,
+    /// Per node: copies in use (1 for nodes not yet counted).
+    count: Vec<u32>,
+    /// Per node: which copy of its parent node it descends from.
+    label: Vec<u32>,
+    /// Per particle: which copy of its node it is.
+    of_particle: Vec<u32>,
+}
+
+impl Copies {
+    /// A new map's: `particles` particles on the root, all one copy of it.
+    pub fn planted(particles: usize) -> Self {
+        Self {
+            enabled: true,
+            count: vec![1],
+            label: vec![0],
+            of_particle: vec![0; particles],
+        }
+    }
+
+    /// The same, counting copies only if `on`.
+    pub fn counting(mut self, on: bool) -> Self {
+        self.enabled = on;
+        self
+    }
+
+    /// Copies of `node`'s sample in use (at least 1).
+    pub fn count(&self, node: NodeId) -> u32 {
+        if !self.enabled {
+            return 1;
+        }
+        self.count.get(node as usize).copied().unwrap_or(1).max(1)
+    }
+
+    /// Records the nodes [`grow`] made: particle `i` is copy `i - first` of
+    /// `nodes[i]`, where `first` is the first particle on that node, and a
+    /// new node descends from the copy its first particle's parent
+    /// particle `origins[i]` was.
+    fn grown(&mut self, nodes: &[NodeId], origins: &[usize]) {
+        if !self.enabled {
+            return;
+        }
+        let mut of_particle = Vec::with_capacity(nodes.len());
+        let mut first = 0;
+        for (i, &node) in nodes.iter().enumerate() {
+            if i == 0 || node != nodes[i - 1] {
+                first = i;
+                let n = node as usize + 1;
+                if self.count.len() < n {
+                    self.count.resize(n, 1);
+                    self.label.resize(n, 0);
+                }
+                self.label[node as usize] = self.of_particle[origins[i]];
+                self.count[node as usize] =
+                    nodes[i..].iter().take_while(|&&m| m == node).count() as u32;
+            }
+            of_particle.push((i - first) as u32);
+        }
+        self.of_particle = of_particle;
+    }
+
+    /// Recounts every live node after pruning: the distinct copies of it
+    /// that particles (`held`, their nodes) sit on or children descend from.
+    fn recount<T: Clone>(&mut self, tree: &AncestryTree<T>, held: &[NodeId]) {
+        if !self.enabled {
+            return;
+        }
+        let cap = tree.capacity();
+        self.count.resize(cap, 1);
+        self.label.resize(cap, 0);
+        let mut used: Vec<(NodeId, u32)> = held
+            .iter()
+            .zip(&self.of_particle)
+            .map(|(&n, &c)| (n, c))
+            .collect();
+        for c in 0..cap as NodeId {
+            if tree.is_alive(c) && c != tree.root() {
+                used.push((tree.parent(c), self.label[c as usize]));
+            }
+        }
+        used.sort_unstable();
+        used.dedup();
+        for (n, _) in used.iter().filter(|(n, _)| tree.is_alive(*n)) {
+            self.count[*n as usize] = 0;
+        }
+        for (n, _) in used {
+            if tree.is_alive(n) {
+                self.count[n as usize] += 1;
+            }
+        }
+    }
+}
+
 /// How [`grow`] records free space (see `MapConfig`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MapUpdate {
@@ -838,7 +966,8 @@ pub struct MapUpdate {
 /// Adds the ancestry nodes of the new particles: particle `i` copies sample
 /// `sources[i]` and is a child of `parents[i]` recording `payload(i)`, with
 /// its observation of `views(i)` (scans at map poses) made against the
-/// parent's view of the map. Returns each particle's node.
+/// parent's view of the map, and was drawn from the particle `origins[i]`
+/// of the previous generation (for `copies`). Returns each particle's node.
 ///
 /// Particles that copy the same sample (runs of equal `sources`: [`draw`]
 /// returns the chosen samples in ascending order) are the same particle:
@@ -848,9 +977,12 @@ pub struct MapUpdate {
 /// shares below are still added once per copy, in order). Later steps
 /// differ only under `MapUpdate::shared`: the copies' descendants then pool
 /// their in-place shares on the one node's entries, where each copy's
-/// subtree used to feed its own (docs/PROPOSAL-2D.md measures what that
-/// costs on fr079-raw). With a sharp proposal most of the chosen samples
-/// are copies: this is most of the map update's work and memory.
+/// subtree used to feed its own; so each share added in place is divided by
+/// the owner's [`Copies::count`], which keeps the entry at the mean of the
+/// per-copy entries (without it new cells accrued free path up to k times
+/// faster and fr079-raw was lost, docs/PROPOSAL-2D.md). With a sharp
+/// proposal most of the chosen samples are copies: this is most of the map
+/// update's work and memory.
 ///
 /// Observations go in chunks of distinct samples (in index order), each
 /// chunk traced in parallel. The new entries wait for all observations
@@ -867,8 +999,10 @@ pub fn grow<'s, const D: usize, P: Pose<D>, T: Clone, V>(
     caches: &CpuScorer<D>,
     laser: &LaserModel,
     update: MapUpdate,
+    copies: &mut Copies,
     parents: &[NodeId],
     sources: &[usize],
+    origins: &[usize],
     views: impl Fn(usize) -> V + Sync,
     mut payload: impl FnMut(usize) -> Vec<T>,
 ) -> Vec<NodeId>
@@ -878,6 +1012,7 @@ where
 {
     let n = parents.len();
     debug_assert_eq!(sources.len(), n);
+    debug_assert_eq!(origins.len(), n);
     let sharers = match update.sharers {
         0 => n,
         m => m.min(n),
@@ -920,7 +1055,7 @@ where
                         free_order.push((owner, k));
                         map.entry_of(owner, k).map_or(f32::NAN, |e| e.distance)
                     });
-                    *v += d * share;
+                    *v += d * share / copies.count(owner) as f32;
                 }
             }
             new_entries.push(obs.new);
@@ -933,6 +1068,7 @@ where
         map.insert_fresh(node, &new);
         nodes.extend(std::iter::repeat_n(node, run_end(r) - i));
     }
+    copies.grown(&nodes, origins);
     // First-seen order: the map edits are the same on every run.
     for key in free_order {
         let (owner, k) = key;
@@ -966,16 +1102,24 @@ pub fn offspring<P: Copy>(
 
 /// Removes dead branches and merges only-children, in the tree and the map
 /// alike (the particles' nodes are kept and rewritten where merged), then
-/// renumbers the tree.
+/// recounts the nodes' copies in use and renumbers the tree.
 pub fn prune<const D: usize, T: Clone, P>(
     tree: &mut AncestryTree<T>,
     map: &mut DpMap<D>,
+    copies: &mut Copies,
     numbering: &mut Numbering,
     particles: &mut [Particle<P>],
 ) {
     let mut held: Vec<NodeId> = particles.iter().map(|p| p.node).collect();
-    let changes = tree.maintain(&mut held);
+    let mut changes = tree.remove_dead(&held);
+    // A child with several copies in use was several children before
+    // copies shared a node: it stays a node of its own until one is left.
+    // (So a particle's parent node, the scan matcher's group in `predict`,
+    // is again, up to copies, the one it had with one node per copy.)
+    copies.recount(tree, &held);
+    changes.extend(tree.collapse(&mut held, |c| copies.count(c) <= 1));
     map.apply(&changes);
+    copies.recount(tree, &held);
     for (p, h) in particles.iter_mut().zip(held) {
         p.node = h;
     }
@@ -1047,4 +1191,63 @@ where
     // Keys are unique and sorted: the map edits (and float sums) are the
     // same on every run and thread.
     Observation { new, free }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ancestry::Change;
+
+    #[test]
+    fn copies_count_the_copies_in_use_and_hold_back_merges() {
+        let mut tree = AncestryTree::new(vec![0u32]);
+        let root = tree.root();
+        let mut copies = Copies::planted(4);
+        // Generation 1: sample a picked twice, b twice (all from the root).
+        let a = tree.add_child(root, 1);
+        let b = tree.add_child(root, 1);
+        copies.grown(&[a, a, b, b], &[0, 1, 2, 3]);
+        let mut held = vec![a, a, b, b];
+        copies.recount(&tree, &held);
+        assert_eq!(
+            [copies.count(root), copies.count(a), copies.count(b)],
+            [1, 2, 2]
+        );
+        // Generation 2: c from particle 0 (copy 0 of a), d three times from
+        // particle 1 (copy 1 of a); b dies.
+        let c = tree.add_child(a, 2);
+        let d = tree.add_child(a, 2);
+        copies.grown(&[c, d, d, d], &[0, 1, 1, 1]);
+        held = vec![c, d, d, d];
+        assert!(!tree.remove_dead(&held).is_empty());
+        copies.recount(&tree, &held);
+        assert_eq!(
+            [copies.count(a), copies.count(c), copies.count(d)],
+            [2, 1, 3]
+        );
+        // Generation 3: only d's copy 2 (particle 3) has offspring, one
+        // sample picked four times: d has one copy in use, a one too.
+        let e = tree.add_child(d, 3);
+        copies.grown(&[e, e, e, e], &[3, 3, 3, 3]);
+        held = vec![e; 4];
+        tree.remove_dead(&held);
+        copies.recount(&tree, &held);
+        assert_eq!(
+            [copies.count(a), copies.count(d), copies.count(e)],
+            [1, 1, 4]
+        );
+        // d is absorbed (one copy), e is not (four copies, four children before).
+        let merged = tree.collapse(&mut held, |n| copies.count(n) <= 1);
+        assert!(merged.contains(&Change::Merged {
+            child: a,
+            into: root
+        }));
+        assert!(merged.contains(&Change::Merged {
+            child: d,
+            into: root
+        }));
+        assert_eq!(tree.children(root), &[e]);
+        copies.recount(&tree, &held);
+        assert_eq!([copies.count(root), copies.count(e)], [1, 4]);
+    }
 }

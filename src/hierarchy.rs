@@ -27,8 +27,8 @@ use crate::ancestry::{AncestryTree, NodeId, Numbering};
 use crate::config::{Config, HierarchyConfig, Resampling};
 use crate::dpmap::DpMap;
 use crate::filter::{
-    Culling, MapUpdate, Particle, ParticleFilter, Stamp, StepInput, StepStats, cull, draw, grow,
-    offspring, plant, prune, stream,
+    Copies, Culling, MapUpdate, Particle, ParticleFilter, Stamp, StepInput, StepStats, cull, draw,
+    grow, offspring, plant, prune, stream,
 };
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
@@ -70,6 +70,8 @@ struct HighLevel<const D: usize, P: Pose<D>> {
     perturb: Box<dyn MotionModel<D, P>>,
     tree: AncestryTree<Stamp<P>>,
     map: DpMap<D>,
+    /// Copies of each node's window in use (the shared free-space update's scale).
+    copies: Copies,
     numbering: Numbering,
     particles: Vec<Particle<P>>,
     best: usize,
@@ -148,10 +150,8 @@ impl<const D: usize, P: Pose<D>> HighLevel<D, P> {
         let (scores, after_quick) = self.weigh(&segments, scans);
         let mut rng = stream(self.seed, self.steps, u64::MAX);
         let chosen = draw(&scores, self.cfg.particles, self.resampling, &mut rng);
-        let parents: Vec<NodeId> = chosen
-            .iter()
-            .map(|&c| self.particles[segments[c].parent].node)
-            .collect();
+        let origins: Vec<usize> = chosen.iter().map(|&c| segments[c].parent).collect();
+        let parents: Vec<NodeId> = origins.iter().map(|&p| self.particles[p].node).collect();
         let nodes = grow(
             &mut self.map,
             &mut self.tree,
@@ -159,8 +159,10 @@ impl<const D: usize, P: Pose<D>> HighLevel<D, P> {
             &self.caches,
             &self.laser,
             self.update,
+            &mut self.copies,
             &parents,
             &chosen,
+            &origins,
             |i| {
                 let seg = &segments[chosen[i]];
                 seg.poses.iter().copied().zip(scans.iter().copied())
@@ -182,6 +184,7 @@ impl<const D: usize, P: Pose<D>> HighLevel<D, P> {
         prune(
             &mut self.tree,
             &mut self.map,
+            &mut self.copies,
             &mut self.numbering,
             &mut self.particles,
         );
@@ -247,6 +250,7 @@ impl<const D: usize, P: Pose<D>> HierarchicalFilter<D, P> {
             perturb,
             tree,
             map,
+            copies: Copies::planted(cfg.hierarchy.particles),
             numbering,
             particles,
             best: 0,
