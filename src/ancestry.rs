@@ -182,14 +182,20 @@ impl<T: Clone> AncestryTree<T> {
         changes
     }
 
+    /// Per node id: whether a particle holds it.
+    fn held_mask(&self, held: &[NodeId]) -> Vec<bool> {
+        let mut is_held = vec![false; self.nodes.len()];
+        for &h in held {
+            is_held[h as usize] = true;
+        }
+        is_held
+    }
+
     /// The first half of [`AncestryTree::maintain`]: removes the childless
     /// nodes that `held` does not hold, and the parents that leaves childless.
     pub fn remove_dead(&mut self, held: &[NodeId]) -> Vec<Change> {
         let mut changes = Vec::new();
-        let mut is_held = vec![false; self.nodes.len()];
-        for &h in held.iter() {
-            is_held[h as usize] = true;
-        }
+        let is_held = self.held_mask(held);
         // Prune: childless, unheld nodes die, and may leave their parents childless.
         let mut stack: Vec<NodeId> = (0..self.nodes.len() as NodeId)
             .filter(|&n| {
@@ -223,10 +229,7 @@ impl<T: Clone> AncestryTree<T> {
         absorb: impl Fn(NodeId) -> bool,
     ) -> Vec<Change> {
         let mut changes = Vec::new();
-        let mut is_held = vec![false; self.nodes.len()];
-        for &h in held.iter() {
-            is_held[h as usize] = true;
-        }
+        let mut is_held = self.held_mask(held);
         // Collapse: a node with one child absorbs it. Children are created after
         // their parents, so visiting parents before children is a pre-order walk.
         let mut order = Vec::with_capacity(self.live);

@@ -250,7 +250,7 @@ impl<const D: usize, P: Pose<D>> HierarchicalFilter<D, P> {
             perturb,
             tree,
             map,
-            copies: Copies::planted(cfg.hierarchy.particles),
+            copies: Copies::planted(cfg.hierarchy.particles).counting(cfg.map.per_copy_shares),
             numbering,
             particles,
             best: 0,
