@@ -37,6 +37,19 @@ pub struct Config {
     /// Topics read from a ROS bag input (`--scan-topic`, `--odom-topic`;
     /// unset: guessed, see [`crate::io::bag`]).
     pub bag: crate::io::bag::scans2d::TopicChoice,
+    /// How 2-D inputs are read beyond their topics.
+    pub input: InputConfig,
+}
+
+/// How 2-D inputs are read (`[input]`).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct InputConfig {
+    /// A CARMEN log's odometry: `"logged"` (default) keeps each laser
+    /// line's pairing, `"retimed"` re-times it to each scan's stamp from the
+    /// log's ODOM stream where the lines were paired from that stream (raw
+    /// logs) ([`crate::io::log2d::OdometryPairing`]).
+    pub odometry: crate::io::log2d::OdometryPairing,
 }
 
 /// The arithmetic of the GPU likelihood shader (see `crate::gpu`).
@@ -504,6 +517,32 @@ pub struct LaserConfig {
     /// (CARMEN's `robot_front_laser_max` is a navigation setting, not the
     /// sensor's limit, in some logs).
     pub trust_declared_max_range: bool,
+    /// Angle of the first beam, degrees in the laser frame (0 = ahead,
+    /// counter-clockwise positive), overriding what the input says. `None`:
+    /// the input's (a bag's `angle_min`; CARMEN FLASER: −90°).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub angle_min_deg: Option<f64>,
+    /// Angle between consecutive beams, degrees, overriding what the input
+    /// says. `None`: the input's (a bag's `angle_increment`; CARMEN FLASER:
+    /// 180°/n for an even count n, 180°/(n−1) for an odd one). For a
+    /// recording whose stated geometry is a converter's guess: the ACES and
+    /// fr079 ROS 1 bags state 180°/(n−1), while their SICK steps 1° or 0.5°
+    /// (docs/PROPOSAL-2D.md, "Beam angles of converted bags").
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub angle_increment_deg: Option<f64>,
+}
+
+impl LaserConfig {
+    /// The beam geometry `(angle_min, angle_increment)` in radians for a
+    /// scan whose input states `(angle_min, angle_increment)` (radians):
+    /// each part the configured override where there is one.
+    pub fn beam_geometry(&self, angle_min: f64, angle_increment: f64) -> (f64, f64) {
+        (
+            self.angle_min_deg.map_or(angle_min, f64::to_radians),
+            self.angle_increment_deg
+                .map_or(angle_increment, f64::to_radians),
+        )
+    }
 }
 
 /// The C/D/T motion model of DP-SLAM (dissertation ch. 6): motion along the
@@ -548,6 +587,7 @@ impl Default for Config {
             scan_match: ScanMatchConfig::default(),
             gpu: GpuConfig::default(),
             bag: Default::default(),
+            input: Default::default(),
         }
     }
 }
@@ -593,6 +633,8 @@ impl Default for LaserConfig {
             max_range: 0.0,
             max_beams: 181,
             trust_declared_max_range: false,
+            angle_min_deg: None,
+            angle_increment_deg: None,
         }
     }
 }
@@ -692,6 +734,16 @@ impl Config {
         }
         if l.max_beams == 0 {
             return bad("laser.max_beams must be at least 1");
+        }
+        if let Some(a) = l.angle_min_deg
+            && !(a.is_finite() && a.abs() <= 360.0)
+        {
+            return bad("laser.angle_min_deg must be finite, within ±360");
+        }
+        if let Some(a) = l.angle_increment_deg
+            && !(a.is_finite() && a > 0.0 && a <= 360.0)
+        {
+            return bad("laser.angle_increment_deg must be in (0, 360]");
         }
         if !(l.beam_floor > 0.0 && l.beam_floor < 1.0) {
             return bad("laser.beam_floor must be in (0, 1)");
@@ -840,5 +892,34 @@ mod tests {
         c.map3d.voxel_size = 0.0;
         assert!(c.validate().unwrap_err().to_string().contains("voxel_size"));
         assert!(Config::default().validate().is_ok());
+    }
+
+    #[test]
+    fn beam_angle_overrides_replace_each_part_and_are_checked() {
+        let mut c = Config::default();
+        assert_eq!(c.laser.beam_geometry(-1.5, 0.01), (-1.5, 0.01));
+        c.laser.angle_increment_deg = Some(0.5);
+        let (min, inc) = c.laser.beam_geometry(-1.5, 0.01);
+        assert_eq!(min, -1.5);
+        assert!((inc - 0.5f64.to_radians()).abs() < 1e-15);
+        c.laser.angle_min_deg = Some(-135.0);
+        assert!((c.laser.beam_geometry(-1.5, 0.01).0 + 0.75 * std::f64::consts::PI).abs() < 1e-15);
+        let back: Config = toml::from_str(&c.to_toml()).unwrap();
+        assert_eq!(back, c);
+        c.laser.angle_increment_deg = Some(0.0);
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("angle_increment_deg")
+        );
+        c.laser.angle_increment_deg = None;
+        c.laser.angle_min_deg = Some(f64::NAN);
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("angle_min_deg")
+        );
     }
 }

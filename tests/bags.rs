@@ -8,7 +8,7 @@ use dpslam::geometry::xyt;
 use dpslam::io::bag::scans2d::{BagScans2d, TopicChoice};
 use dpslam::io::bag::sweeps3d::SweepSource;
 use dpslam::io::bag::{Bag, Storage};
-use dpslam::io::log2d::{LogFormat, open_log2d, open_log2d_with};
+use dpslam::io::log2d::{LogFormat, OdometryPairing, open_log2d, open_log2d_with};
 use dpslam::io::sweeps::read_sweep;
 use dpslam::scan::LaserScan2d;
 use std::f64::consts::PI;
@@ -26,6 +26,15 @@ fn scans(path: &Path) -> Vec<LaserScan2d> {
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
         .collect::<dpslam::Result<Vec<_>>>()
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// A CARMEN log's scans with `input.odometry = "retimed"`.
+fn retimed(path: &Path) -> Vec<LaserScan2d> {
+    open_log2d(path)
+        .unwrap()
+        .with_odometry(OdometryPairing::Retimed)
+        .collect::<dpslam::Result<Vec<_>>>()
+        .unwrap()
 }
 
 /// The first error reading all scans of `path` with `choice`.
@@ -71,10 +80,10 @@ fn aces_bag_lists_its_topics_and_matches_the_carmen_log_of_the_same_recording() 
     assert_eq!(r.format(), LogFormat::RosBag);
     assert_eq!(r.sensor_offset().map(|p| xyt(&p)), Some((0.0, 0.0, 0.0)));
     let b = scans(&path);
-    let c = scans(&ds("carmen/aces-raw/aces-raw.clf.gz"));
+    let c = retimed(&ds("carmen/aces-raw/aces-raw.clf.gz"));
     assert_eq!(b.len(), 7374);
     assert_eq!(c.len(), 7374);
-    let (mut same_odo, mut gap) = (0, 0.0);
+    let mut kept = 0;
     for (i, (x, y)) in b.iter().zip(&c).enumerate() {
         assert_eq!(x.ranges.len(), 180);
         // Header stamps are the log's ipc timestamps (µs in the log).
@@ -93,22 +102,112 @@ fn aces_bag_lists_its_topics_and_matches_the_carmen_log_of_the_same_recording() 
                 assert_eq!(u, v, "scan {i} beam {k}");
             }
         }
+        // The bag interpolates /odom at each scan's stamp; the log's FLASER
+        // lines carry the logger's pairing (mostly the latest ODOM, up to
+        // 0.25 s older), which `input.odometry = "retimed"` re-times from
+        // the same ODOM stream.
+        // Where the logged pairing is off the stream's path around the
+        // stamp (25 scans), the line is kept.
         let d = x.odometry.inverse() * y.odometry;
-        if d.translation.vector.norm() < 0.2 && d.rotation.angle().abs() < 10f64.to_radians() {
-            same_odo += 1;
+        if d.translation.vector.norm() > 1e-6 || d.rotation.angle().abs() > 1e-6 {
+            kept += 1;
         }
-        gap += d.translation.vector.norm();
     }
-    // The bag interpolates /odom at each scan's stamp; the CARMEN log's
-    // FLASER lines carry the logger's own pairing, mostly the latest ODOM
-    // message, up to one odometry period (≈ 0.25 s) older: a few cm apart
-    // on average, more where the robot turns fast.
-    let mean_gap = gap / b.len() as f64;
+    assert!(kept <= 30, "{kept} scans' odometry differs from the bag's");
+    let logged: Vec<_> = scans(&ds("carmen/aces-raw/aces-raw.clf.gz"))
+        .into_iter()
+        .map(|s| s.odometry)
+        .collect();
+    let gap: f64 = logged
+        .iter()
+        .zip(&c)
+        .map(|(l, r)| (l.inverse() * r.odometry).translation.vector.norm())
+        .sum::<f64>()
+        / logged.len() as f64;
     assert!(
-        same_odo * 100 >= b.len() * 99 && mean_gap < 0.05,
-        "odometry near the CARMEN log's for only {same_odo} of {} scans, {mean_gap} m apart on average",
-        b.len()
+        gap > 0.01 && gap < 0.05,
+        "re-timing moves the logged odometry by {gap} m on average"
     );
+}
+
+/// With `input.odometry = "retimed"`, raw logs' laser lines, paired from
+/// their own ODOM stream, are re-timed; corrected logs' poses come from a SLAM run, not from their
+/// ODOM lines, and are kept; a log without ODOM lines is kept.
+#[test]
+fn raw_carmen_logs_are_re_timed_corrected_ones_are_not() {
+    for (log, retimed) in [
+        ("carmen/aces-raw/aces-raw.clf.gz", true),
+        ("carmen/fr079-raw/fr079-raw.clf.gz", true),
+        ("carmen/aces/aces-corrected.log.gz", false),
+        ("carmen/fr079/freiburg-079-corrected.log.gz", false),
+        ("carmen/mit-csail/csail-corrected.log.gz", false),
+        ("carmen/other-corrected/seattle-corrected.log.gz", false),
+        ("carmen/mit-csail/mit-csail.clf", false),
+    ] {
+        let mut r = open_log2d(&ds(log))
+            .unwrap()
+            .with_odometry(OdometryPairing::Retimed);
+        assert!(!r.retimed(), "{log}: decided before the first scan");
+        r.next().unwrap().unwrap();
+        assert_eq!(r.retimed(), retimed, "{log}");
+    }
+    // The fr079 bag interpolates the same stream.
+    let b = scans(&ds("ros/ros1/fr079.bag"));
+    let c = retimed(&ds("carmen/fr079-raw/fr079-raw.clf.gz"));
+    let differ = b
+        .iter()
+        .zip(&c)
+        .filter(|(x, y)| {
+            (x.odometry.inverse() * y.odometry)
+                .translation
+                .vector
+                .norm()
+                > 1e-6
+        })
+        .count();
+    // The first scan precedes the first ODOM; 21 stamps disagree with the
+    // logger's pairing by 0.2–0.5 s and keep it.
+    assert!(
+        differ <= 25,
+        "{differ} of fr079's scans differ from the bag's odometry"
+    );
+}
+
+#[test]
+fn example_configs_give_the_converted_bags_their_logs_geometry() {
+    let example = |name: &str| {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("docs/examples")
+            .join(name);
+        dpslam::config::Config::from_toml_file(&p).unwrap_or_else(|e| panic!("{e}"))
+    };
+    for (cfg, bag, log) in [
+        (
+            example("aces-bag.toml"),
+            "ros/ros1/aces.bag",
+            "carmen/aces-raw/aces-raw.clf.gz",
+        ),
+        (
+            example("fr079-bag.toml"),
+            "ros/ros1/fr079.bag",
+            "carmen/fr079-raw/fr079-raw.clf.gz",
+        ),
+    ] {
+        let b = open_log2d(&ds(bag)).unwrap().next().unwrap().unwrap();
+        let mut c = open_log2d(&ds(log)).unwrap();
+        let first = c.next().unwrap().unwrap();
+        let (min, inc) = cfg.laser.beam_geometry(b.angle_min, b.angle_increment);
+        assert!(
+            (inc - b.angle_increment).abs() > 1e-5,
+            "{bag}: the bag states another step"
+        );
+        assert!((min - first.angle_min).abs() < 1e-6, "{bag}: {min}");
+        assert!((inc - first.angle_increment).abs() < 1e-12, "{bag}: {inc}");
+        if let Some([x, y, th]) = cfg.motion2d.sensor_offset {
+            let (lx, ly, lth) = xyt(&c.sensor_offset().unwrap());
+            assert_eq!((x, y, th), (lx, ly, lth), "{bag}: the log's laser mount");
+        }
+    }
 }
 
 #[test]

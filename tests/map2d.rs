@@ -279,3 +279,39 @@ fn the_chosen_scorer_scores_both_levels_of_hierarchical_slam() {
     assert!(seen.contains(&cfg.hierarchy.variance), "{seen:?}");
     assert_eq!(slam.scorer().map(|s| s.name()), Some("recording"));
 }
+
+#[test]
+fn configured_beam_angles_replace_the_logs_and_are_echoed() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = prefix(SIM_LOG, 250, dir.path(), "sim.clf");
+    let run = |name: &str, cfg: &Config| {
+        let out = dir.path().join(name);
+        run_map2d(&log, &out, cfg).unwrap();
+        let echoed = Config::from_toml_file(&out.join("config.toml")).unwrap();
+        assert_eq!(&echoed, cfg, "{name}: the echo reproduces the overrides");
+        std::fs::read(out.join("trajectory.tum")).unwrap()
+    };
+    let plain = run("plain", &small_config());
+    // The simulator writes 181 beams over 180°: stating that changes nothing.
+    let mut same = small_config();
+    same.laser.angle_min_deg = Some(-90.0);
+    same.laser.angle_increment_deg = Some(1.0);
+    assert_eq!(run("same", &same), plain);
+    // A scan stretched by 5 %: the beams at the edges turn 4.5°.
+    let mut stretched = small_config();
+    stretched.laser.angle_increment_deg = Some(1.05);
+    let bent = run("stretched", &stretched);
+    assert_ne!(bent, plain);
+    let truth = read_tum(Path::new(SIM_TRUTH)).unwrap();
+    let ate = |name: &str| {
+        let t = read_tum(&dir.path().join(name).join("trajectory.tum")).unwrap();
+        evaluate_ate(&truth, &t, &AteOptions::default())
+            .unwrap()
+            .rmse_m
+    };
+    let (good, bad) = (ate("plain"), ate("stretched"));
+    assert!(
+        bad > good,
+        "a wrong beam geometry fits worse: {bad} vs {good} m"
+    );
+}

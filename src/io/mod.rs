@@ -10,6 +10,7 @@ pub mod carmen;
 pub mod dpslam_log;
 pub mod log2d;
 pub mod map_image;
+pub mod odometry;
 pub mod ply;
 pub mod source;
 pub mod sweeps;

@@ -48,6 +48,10 @@ pub struct Map2dSummary {
     pub input: PathBuf,
     /// Detected log format.
     pub format: String,
+    /// The scans' odometry was re-timed from the CARMEN log's ODOM stream
+    /// (`input.odometry`; [`crate::io::log2d`]).
+    #[serde(default)]
+    pub odometry_retimed: bool,
     /// Laser scans in the input (= lines of `trajectory.tum`).
     pub scans: usize,
     /// Scans the filter processed (the others moved too little).
@@ -207,6 +211,8 @@ pub struct FilterRun2d {
     pub slam: Slam2d,
     /// Detected log format.
     pub format: LogFormat,
+    /// The scans' odometry was re-timed from the log's ODOM stream.
+    pub odometry_retimed: bool,
     /// Time span of the log, s (`None` without time stamps).
     pub data_duration_s: Option<f64>,
     /// What the range survey found worth a warning.
@@ -238,13 +244,14 @@ pub fn run_filter2d_observed(
     let survey = RangeSurvey::of_scans(open_log2d_with(log, &cfg.bag)?)?;
     let sensor_max = survey.sensor_max(cfg.laser.trust_declared_max_range);
     slam.set_no_return_range(sensor_max);
-    let mut reader = open_log2d_with(log, &cfg.bag)?;
+    let mut reader = open_log2d_with(log, &cfg.bag)?.with_odometry(cfg.input.odometry);
     let format = reader.format();
     slam.set_mount(sensor_mount_of(cfg, &reader));
     let total = reader.total_bytes();
     let (mut first_time, mut last_time) = (None, None);
     while let Some(item) = reader.next() {
-        let s: LaserScan2d = item?;
+        let mut s: LaserScan2d = item?;
+        (s.angle_min, s.angle_increment) = cfg.laser.beam_geometry(s.angle_min, s.angle_increment);
         let t = s.timestamp.unwrap_or(slam.scans() as f64);
         if s.timestamp.is_some() {
             first_time.get_or_insert(t);
@@ -266,6 +273,7 @@ pub fn run_filter2d_observed(
         warnings: survey.warnings(log, sensor_max, slam.max_range()),
         slam,
         format,
+        odometry_retimed: reader.retimed(),
         data_duration_s,
         backend: backend_used,
     })
@@ -300,6 +308,7 @@ pub fn run_map2d_observed(
     let FilterRun2d {
         slam,
         format,
+        odometry_retimed,
         data_duration_s: duration,
         mut warnings,
         backend: backend_used,
@@ -315,6 +324,7 @@ pub fn run_map2d_observed(
         version: env!("CARGO_PKG_VERSION").to_string(),
         input: log.to_path_buf(),
         format: format!("{format:?}"),
+        odometry_retimed,
         scans: slam.scans(),
         scans_processed: stats.len() + 1,
         particles: f.particles,
