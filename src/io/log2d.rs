@@ -69,7 +69,7 @@ enum Retime {
 
 /// Fraction of a log's scans whose logged odometry must lie on the ODOM
 /// path around their stamp for the log to count as paired from it. Raw
-/// logs: 99.5 % (ACES, 24 of 7374 off), 99.6 % (fr079); corrected logs,
+/// logs: 99.7 % (ACES, 24 of 7374 off), 99.6 % (fr079); corrected logs,
 /// whose FLASER poses are a SLAM result while ODOM is the raw odometry:
 /// 0–61 %.
 const PAIRED_SHARE: f64 = 0.95;
