@@ -4,7 +4,7 @@
 //! and against each other; point clouds against the PCDs they were made
 //! from; and hostile bags made from the real ones in a temporary folder.
 
-use dpslam::geometry::xyt;
+use dpslam::geometry::{Pose2, xyt};
 use dpslam::io::bag::scans2d::{BagScans2d, TopicChoice};
 use dpslam::io::bag::sweeps3d::SweepSource;
 use dpslam::io::bag::{Bag, Storage};
@@ -26,6 +26,12 @@ fn scans(path: &Path) -> Vec<LaserScan2d> {
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
         .collect::<dpslam::Result<Vec<_>>>()
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// How far apart two odometry poses are: (metres, |radians|).
+fn odometry_gap(a: &Pose2, b: &Pose2) -> (f64, f64) {
+    let d = a.inverse() * b;
+    (d.translation.vector.norm(), d.rotation.angle().abs())
 }
 
 /// A CARMEN log's scans with `input.odometry = "retimed"`.
@@ -108,8 +114,8 @@ fn aces_bag_lists_its_topics_and_matches_the_carmen_log_of_the_same_recording() 
         // the same ODOM stream.
         // Where the logged pairing is off the stream's path around the
         // stamp (25 scans), the line is kept.
-        let d = x.odometry.inverse() * y.odometry;
-        if d.translation.vector.norm() > 1e-6 || d.rotation.angle().abs() > 1e-6 {
+        let (dx, dth) = odometry_gap(&x.odometry, &y.odometry);
+        if dx > 1e-6 || dth > 1e-6 {
             kept += 1;
         }
     }
@@ -121,7 +127,7 @@ fn aces_bag_lists_its_topics_and_matches_the_carmen_log_of_the_same_recording() 
     let gap: f64 = logged
         .iter()
         .zip(&c)
-        .map(|(l, r)| (l.inverse() * r.odometry).translation.vector.norm())
+        .map(|(l, r)| odometry_gap(l, &r.odometry).0)
         .sum::<f64>()
         / logged.len() as f64;
     assert!(
@@ -157,13 +163,7 @@ fn raw_carmen_logs_are_re_timed_corrected_ones_are_not() {
     let differ = b
         .iter()
         .zip(&c)
-        .filter(|(x, y)| {
-            (x.odometry.inverse() * y.odometry)
-                .translation
-                .vector
-                .norm()
-                > 1e-6
-        })
+        .filter(|(x, y)| odometry_gap(&x.odometry, &y.odometry).0 > 1e-6)
         .count();
     // The first scan precedes the first ODOM; 21 stamps disagree with the
     // logger's pairing by 0.2–0.5 s and keep it.
@@ -274,12 +274,7 @@ fn odometry_from_tf_when_the_odometry_topic_is_not_used() {
     let worst = a
         .iter()
         .zip(&b)
-        .map(|(x, y)| {
-            (x.odometry.inverse() * y.odometry)
-                .translation
-                .vector
-                .norm()
-        })
+        .map(|(x, y)| odometry_gap(&x.odometry, &y.odometry).0)
         .fold(0.0, f64::max);
     assert!(worst < 1e-6, "{worst}");
 }

@@ -24,7 +24,7 @@ use crate::io::bag::scans2d::{BagScans2d, TopicChoice};
 use crate::io::carmen::CarmenParser;
 use crate::io::carmen::{CarmenRecord, parse_record};
 use crate::io::dpslam_log::{DpSlamParser, is_dpslam_keyword};
-use crate::io::odometry::{Track, planar};
+use crate::io::odometry::{Track, planar, spatial};
 use crate::io::source::TextSource;
 use crate::scan::LaserScan2d;
 use crate::{Error, Result};
@@ -158,14 +158,6 @@ fn lies_between(p: &Pose2, a: &Pose2, b: &Pose2) -> bool {
         let th = ta + turn * s;
         (pp - xy).norm() <= ON_PATH_M && crate::geometry::wrap_angle(tp - th).abs() <= ON_PATH_RAD
     })
-}
-
-/// A planar pose as a 3-D one (z = 0, rotation about z).
-fn spatial(p: &Pose2) -> crate::geometry::Pose3 {
-    nalgebra::Isometry3::new(
-        nalgebra::Vector3::new(p.translation.x, p.translation.y, 0.0),
-        nalgebra::Vector3::z() * p.rotation.angle(),
-    )
 }
 
 enum Parser {

@@ -80,6 +80,15 @@ pub fn planar(p: &Pose3) -> Pose2 {
     crate::geometry::pose2(p.translation.vector.x, p.translation.vector.y, yaw)
 }
 
+/// A planar pose (x, y, yaw) as a 3-D one: z = 0, rotation about z; the
+/// inverse of [`planar`].
+pub fn spatial(p: &Pose2) -> Pose3 {
+    nalgebra::Isometry3::new(
+        nalgebra::Vector3::new(p.translation.x, p.translation.y, 0.0),
+        nalgebra::Vector3::z() * p.rotation.angle(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -133,5 +142,13 @@ mod tests {
         assert_eq!(planar(&t.at(0).unwrap()).translation.x, 0.0);
         assert_eq!(planar(&t.at(9_000).unwrap()).translation.x, 2.0);
         assert!(Track::default().at(5).is_none());
+    }
+
+    #[test]
+    fn a_planar_pose_survives_the_round_trip_through_3d() {
+        let p = crate::geometry::pose2(1.5, -2.0, 3.0);
+        let back = planar(&spatial(&p));
+        assert!((back.translation.vector - p.translation.vector).norm() < 1e-12);
+        assert!((back.rotation.angle() - 3.0).abs() < 1e-12);
     }
 }
