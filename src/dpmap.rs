@@ -39,6 +39,10 @@ pub struct Entry {
 mod cell_list;
 pub use cell_list::CellList;
 
+/// A node with no entries yet and its observations, one per cell:
+/// `(cell, hits, path length m)` (see [`DpMap::insert_fresh_nodes`]).
+pub type FreshNode<const D: usize> = (NodeId, Vec<(CellKey<D>, f32, f32)>);
+
 const fn brick_bits(d: usize) -> u32 {
     if d <= 2 { 4 } else { 3 }
 }
@@ -117,10 +121,18 @@ fn split<const D: usize>(k: CellKey<D>) -> (CellKey<D>, usize) {
 
 /// Sort key for bulk edits: cells in the order the map stores them (by brick,
 /// then Morton index inside the brick), so consecutive edits share bricks
-/// and cache lines.
+/// and cache lines. One integer (for up to three dimensions), so that a sort
+/// computes it once per cell rather than once per comparison.
 #[inline]
-pub fn storage_order<const D: usize>(k: CellKey<D>) -> (CellKey<D>, usize) {
-    split(k)
+pub fn storage_order<const D: usize>(k: CellKey<D>) -> u128 {
+    const { assert!(D <= 3, "storage_order packs at most three coordinates") };
+    let (brick, idx) = split(k);
+    // Flipping the sign bit orders i32 as u32; the brick's coordinates come
+    // first, most significant first, then the index inside it.
+    brick.iter().fold(0u128, |key, &c| {
+        (key << 32) | u128::from(c as u32 ^ 0x8000_0000)
+    }) << 32
+        | idx as u128
 }
 
 /// Inverse of the in-brick part of [`split`]: local coordinates of index `idx`.
@@ -287,6 +299,50 @@ impl<const D: usize> DpMap<D> {
         *self.node_index(node) = index;
     }
 
+    /// [`DpMap::insert_fresh`] for several nodes at once, in order (each
+    /// node's cells unique and best in [`storage_order`]). The lists are
+    /// appended one brick at a time; the nodes' indexes are built in
+    /// parallel.
+    pub fn insert_fresh_nodes(&mut self, fresh: &[FreshNode<D>]) {
+        self.version = next_version();
+        let n = Self::brick_cells();
+        let mut positions: Vec<Vec<u32>> = Vec::with_capacity(fresh.len());
+        for (node, cells) in fresh {
+            assert_eq!(self.node_entries(*node), 0, "node {node} is not fresh");
+            let mut at = Vec::with_capacity(cells.len());
+            for run in cells.chunk_by(|a, b| split(a.0).0 == split(b.0).0) {
+                let brick = self
+                    .bricks
+                    .entry(split(run[0].0).0)
+                    .or_insert_with(|| Brick {
+                        cells: vec![CellList::new(); n].into_boxed_slice(),
+                        stamp: 0,
+                    });
+                brick.stamp = self.version;
+                for &(k, hits, distance) in run {
+                    let list = &mut brick.cells[split(k).1];
+                    at.push(list.len() as u32);
+                    list.push(Entry {
+                        node: *node,
+                        hits,
+                        distance,
+                    });
+                }
+            }
+            self.entries += cells.len();
+            positions.push(at);
+        }
+        let indexes: Vec<FxHashMap<CellKey<D>, u32>> = fresh
+            .par_iter()
+            .zip(positions)
+            .map(|((_, cells), at)| cells.iter().map(|c| c.0).zip(at).collect())
+            .collect();
+        for ((node, cells), index) in fresh.iter().zip(indexes) {
+            debug_assert_eq!(index.len(), cells.len(), "node {node}: cells repeat");
+            *self.node_index(*node) = index;
+        }
+    }
+
     /// Writes `node`'s entry of cell `k` (`index` is the node's index, held
     /// outside the map while it is edited): overwrites an existing entry,
     /// else appends one.
@@ -333,6 +389,20 @@ impl<const D: usize> DpMap<D> {
     pub fn entry_of(&self, node: NodeId, k: CellKey<D>) -> Option<Entry> {
         let &pos = self.index.get(node as usize)?.get(&k)?;
         self.cell(k).get(pos as usize).copied()
+    }
+
+    /// Sets the path length (m) of each entry `(cell, position in the
+    /// cell's list, m)`, positions as [`MapView::position`] finds them. They
+    /// hold until a list loses an entry ([`DpMap::apply`]); appends do not
+    /// move them.
+    pub(crate) fn set_distances_at(
+        &mut self,
+        edits: impl IntoIterator<Item = (CellKey<D>, u32, f32)>,
+    ) {
+        self.version = next_version();
+        for (k, pos, distance) in edits {
+            self.cell_mut(k)[pos as usize].distance = distance;
+        }
     }
 
     /// Sets the path length (m) of `node`'s existing entry in cell `k`.
@@ -758,6 +828,14 @@ impl<'a, const D: usize> MapView<'a, D> {
         resolve(list, self.enter, self.exit, self.leaf_enter)
     }
 
+    /// Where `node`'s entry sits in cell `k`'s list, if it has one there
+    /// (whether or not this particle sees it).
+    #[inline]
+    pub(crate) fn position(&mut self, k: CellKey<D>, node: NodeId) -> Option<u32> {
+        let list = self.list(k)?;
+        list.iter().position(|e| e.node == node).map(|p| p as u32)
+    }
+
     /// As [`MapView::lookup`], resolving long lists through `cache`.
     #[inline]
     pub fn lookup_cached(&mut self, cache: &mut ViewCache<D>, k: CellKey<D>) -> Option<(f32, f32)> {
@@ -925,6 +1003,54 @@ mod tests {
     /// The view from the ordered lists equals a brute-force deepest-ancestor search
     /// through random generations of births, deaths and merges.
     #[test]
+    fn storage_order_sorts_by_brick_then_morton_index() {
+        let mut keys2: Vec<CellKey<2>> = Vec::new();
+        let mut keys3: Vec<CellKey<3>> = Vec::new();
+        for x in [-70_000, -17, -16, -1, 0, 5, 15, 16, 300, i32::MAX] {
+            for y in [-3, 0, 7, 8, -40_000] {
+                keys2.push([x, y]);
+                keys3.push([y, x, -y]);
+            }
+        }
+        let mut a = keys2.clone();
+        a.sort_by_key(|&k| split(k));
+        keys2.sort_by_key(|&k| storage_order(k));
+        assert_eq!(a, keys2);
+        let mut a = keys3.clone();
+        a.sort_by_key(|&k| split(k));
+        keys3.sort_by_key(|&k| storage_order(k));
+        assert_eq!(a, keys3);
+    }
+
+    #[test]
+    fn batched_edits_land_where_single_ones_do() {
+        let mut t = AncestryTree::new(vec![()]);
+        let r = t.root();
+        let (a, b) = (t.add_child(r, ()), t.add_child(r, ()));
+        let cells = |x: i32| vec![([x, 0], 1.0, 2.0), ([x, 1], 0.0, 3.0), ([40, x], 1.0, 4.0)];
+        let mut one = DpMap::<2>::new(0.1);
+        one.insert_fresh(a, &cells(1));
+        one.insert_fresh(b, &cells(2));
+        let mut batch = DpMap::<2>::new(0.1);
+        batch.insert_fresh_nodes(&[(a, cells(1)), (b, cells(2))]);
+        let (mut x, mut y) = (Vec::new(), Vec::new());
+        one.for_each_cell(|k, l| x.push((k, l.to_vec())));
+        batch.for_each_cell(|k, l| y.push((k, l.to_vec())));
+        assert_eq!(x, y);
+        assert_eq!(batch.entry_count(), 6);
+        assert_eq!(batch.node_entries(b), 3);
+        // [40, 1] and [40, 2] share a brick and no list: b's entry is first.
+        let mut num = Numbering::default();
+        t.number(&mut num);
+        let pos = batch.view(&num, r).position([40, 2], b).unwrap();
+        assert_eq!(pos, 0);
+        assert_eq!(batch.view(&num, r).position([40, 2], a), None);
+        batch.set_distances_at([([40, 2], pos, 9.0)]);
+        assert_eq!(batch.entry_of(b, [40, 2]).unwrap().distance, 9.0);
+        assert_eq!(batch.entry_of(a, [40, 1]).unwrap().distance, 4.0);
+    }
+
+    #[test]
     fn views_match_brute_force_under_random_maintenance() {
         use rand::{RngExt, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
@@ -966,12 +1092,17 @@ mod tests {
                 new_private.push(mine);
             }
             let new_held: Vec<NodeId> = pick.iter().map(|&p| t.add_child(held[p], ())).collect();
-            for (node, ups) in new_held.iter().zip(updates) {
-                if g % 2 == 0 {
-                    m.insert_fresh(*node, &ups);
-                } else {
-                    for (k, h, d) in ups {
-                        m.insert(*node, k, h, d);
+            if g % 3 == 2 {
+                let fresh: Vec<FreshNode<2>> = new_held.iter().copied().zip(updates).collect();
+                m.insert_fresh_nodes(&fresh);
+            } else {
+                for (node, ups) in new_held.iter().zip(updates) {
+                    if g % 3 == 0 {
+                        m.insert_fresh(*node, &ups);
+                    } else {
+                        for (k, h, d) in ups {
+                            m.insert(*node, k, h, d);
+                        }
                     }
                 }
             }

@@ -25,7 +25,9 @@ use crate::motion_model::MotionModel;
 use crate::proposal::{MatchContext, Proposal, ScanRegistration};
 use crate::raycast::CellKey;
 use crate::scan::Scan;
-use crate::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer, map_in_preorder};
+use crate::scorer::{
+    BeamSubset, Candidate, CellSums, CpuScorer, ScoreContext, Scorer, map_in_preorder,
+};
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
@@ -673,7 +675,16 @@ where
     let mut numbering = Numbering::default();
     tree.number(&mut numbering);
     let mut view = map.view(&numbering, root);
-    let first = observe(laser, |k| view.entry(k), seeds, false, false);
+    let mut sums = CellSums::default();
+    let first = observe(
+        laser,
+        &mut sums,
+        |k| view.entry(k),
+        |_, _| None,
+        seeds,
+        false,
+        false,
+    );
     map.insert_fresh(root, &first.new);
     (tree, map, numbering)
 }
@@ -990,7 +1001,9 @@ pub struct MapUpdate {
 /// folded as each chunk ends into the running path length of each (owner,
 /// cell): one value per pair instead of one per particle, and the same
 /// float additions, in the same order, as adding each particle's share in
-/// place.
+/// place. That fold runs in parallel too, one [`FreeShard`] of the cells
+/// per task: a cell's additions all happen in one shard, in observation
+/// order, so the sums do not depend on the thread count.
 #[allow(clippy::too_many_arguments)]
 pub fn grow<'s, const D: usize, P: Pose<D>, T: Clone, V>(
     map: &mut DpMap<D>,
@@ -1027,8 +1040,7 @@ where
     let run_end = |r: usize| firsts.get(r + 1).copied().unwrap_or(n);
     let chunk = (8 * rayon::current_num_threads()).max(16);
     let mut new_entries: Vec<Vec<(CellKey<D>, f32, f32)>> = Vec::with_capacity(firsts.len());
-    let mut free: FxHashMap<(NodeId, CellKey<D>), f32> = FxHashMap::default();
-    let mut free_order: Vec<(NodeId, CellKey<D>)> = Vec::new();
+    let mut free: Vec<FreeShard<D>> = (0..FREE_SHARDS).map(|_| FreeShard::default()).collect();
     for lo in (0..firsts.len()).step_by(chunk) {
         let hi = (lo + chunk).min(firsts.len());
         let shared_map: &DpMap<D> = map;
@@ -1039,42 +1051,80 @@ where
                 let i = firsts[lo + r];
                 let mut cache = caches.thread_cache();
                 let mut view = shared_map.view(numbering, parents[i]);
+                let mut lists = shared_map.view(numbering, parents[i]);
                 observe(
                     laser,
+                    &mut caches.thread_sums(),
                     |k| view.entry_cached(&mut cache, k),
+                    |k, owner| lists.position(k, owner),
                     views(i),
                     update.shared,
                     (i..run_end(lo + r)).any(shares),
                 )
             },
         );
-        for (r, obs) in (lo..hi).zip(observations) {
-            for _copy in (firsts[r]..run_end(r)).filter(|&i| shares(i)) {
-                for &(owner, k, d) in &obs.free {
-                    let v = free.entry((owner, k)).or_insert_with(|| {
-                        free_order.push((owner, k));
-                        map.entry_of(owner, k).map_or(f32::NAN, |e| e.distance)
-                    });
-                    *v += d * share / copies.count(owner) as f32;
+        let copies: &Copies = copies;
+        free.par_iter_mut().enumerate().for_each(|(s, shard)| {
+            for (r, obs) in (lo..hi).zip(&observations) {
+                for _copy in (firsts[r]..run_end(r)).filter(|&i| shares(i)) {
+                    for f in obs.free_in(s) {
+                        shard.add(f, f.path * share / copies.count(f.owner) as f32);
+                    }
                 }
             }
-            new_entries.push(obs.new);
-        }
+        });
+        new_entries.extend(observations.into_iter().map(|obs| obs.new));
     }
+    // The owners' entries were found before any edit; the new nodes'
+    // entries below only append to lists, so the positions hold either way.
+    map.set_distances_at(free.iter().flat_map(|shard| shard.edits()));
     let mut nodes = Vec::with_capacity(n);
+    let mut fresh = Vec::with_capacity(new_entries.len());
     for (r, new) in new_entries.into_iter().enumerate() {
         let i = firsts[r];
         let node = tree.add_child_records(parents[i], payload(i));
-        map.insert_fresh(node, &new);
+        fresh.push((node, new));
         nodes.extend(std::iter::repeat_n(node, run_end(r) - i));
     }
+    map.insert_fresh_nodes(&fresh);
     copies.grown(&nodes, origins);
-    // First-seen order: the map edits are the same on every run.
-    for key in free_order {
-        let (owner, k) = key;
-        map.set_distance(owner, k, free[&key]);
-    }
     nodes
+}
+
+/// How many shards [`grow`] folds free space in (any number gives the same
+/// sums; enough to balance a few threads).
+const FREE_SHARDS: usize = 16;
+
+/// The shard of cell `k`: by brick of 8^D cells, so that one shard's
+/// entries stay in few of the map's bricks.
+fn free_shard<const D: usize>(k: CellKey<D>) -> usize {
+    let h = k.iter().fold(0u64, |h, &c| {
+        (h.rotate_left(5) ^ u64::from((c >> 3) as u32)).wrapping_mul(0x517c_c1b7_2722_0a95)
+    });
+    (h >> 32) as usize % FREE_SHARDS
+}
+
+/// The running path length (m) of each (owner, cell) in one shard of the
+/// cells, with where the owner's entry sits in its cell's list.
+#[derive(Default)]
+struct FreeShard<const D: usize> {
+    sums: FxHashMap<(NodeId, CellKey<D>), (u32, f32)>,
+}
+
+impl<const D: usize> FreeShard<D> {
+    /// Adds `d` metres to the entry `f` is about, starting from the path
+    /// length it had in the map the first time the pair is seen.
+    fn add(&mut self, f: &FreeShare<D>, d: f32) {
+        self.sums
+            .entry((f.owner, f.cell))
+            .or_insert((f.position, f.before))
+            .1 += d;
+    }
+
+    /// `(cell, position in its list, path length m)` for each pair.
+    fn edits(&self) -> impl Iterator<Item = (CellKey<D>, u32, f32)> + '_ {
+        self.sums.iter().map(|(&(_, k), &(pos, d))| (k, pos, d))
+    }
 }
 
 /// The particles made from the `chosen` samples: sample `chosen[i]` at
@@ -1130,8 +1180,31 @@ pub fn prune<const D: usize, T: Clone, P>(
 struct Observation<const D: usize> {
     /// New entries `(cell, hits, distance m)` for the observing particle's node.
     new: Vec<(CellKey<D>, f32, f32)>,
-    /// Free-space path lengths `(owner node, cell, m)` to add in place.
-    free: Vec<(NodeId, CellKey<D>, f32)>,
+    /// Free-space path lengths to add in place, grouped by [`free_shard`]:
+    /// shard `s` is `free[starts[s]..starts[s + 1]]`.
+    free: Vec<FreeShare<D>>,
+    starts: [usize; FREE_SHARDS + 1],
+}
+
+impl<const D: usize> Observation<D> {
+    /// The free-space path lengths of cells in shard `s`.
+    fn free_in(&self, s: usize) -> &[FreeShare<D>] {
+        &self.free[self.starts[s]..self.starts[s + 1]]
+    }
+}
+
+/// Free path through a cell that the observing particle sees as free, to be
+/// added in place to the entry it sees there.
+struct FreeShare<const D: usize> {
+    /// The node whose entry the particle sees.
+    owner: NodeId,
+    cell: CellKey<D>,
+    /// Where that entry sits in the cell's list.
+    position: u32,
+    /// Its path length (m) before this step.
+    before: f32,
+    /// The path length (m) the scans add.
+    path: f32,
 }
 
 /// One particle's observation of scans (each at its map pose): for each
@@ -1139,10 +1212,13 @@ struct Observation<const D: usize> {
 /// particle sees (`entry_of`), or to the prior where it has never seen the
 /// cell. With `shared_free`, a cell that the particle sees as free and the
 /// scans only pass through is reported in `free` instead (if
-/// `record_free`), to be added in place to the entry it sees.
+/// `record_free`), to be added in place to the entry it sees, found at
+/// `position_of(cell, owner)` in the cell's list.
 fn observe<'s, const D: usize, P: Pose<D>>(
     laser: &LaserModel,
+    sums: &mut CellSums<D>,
     mut entry_of: impl FnMut(CellKey<D>) -> Option<crate::dpmap::Entry>,
+    mut position_of: impl FnMut(CellKey<D>, NodeId) -> Option<u32>,
     views: impl IntoIterator<Item = (P, &'s Scan<D, P>)>,
     shared_free: bool,
     record_free: bool,
@@ -1150,7 +1226,11 @@ fn observe<'s, const D: usize, P: Pose<D>>(
 where
     Scan<D, P>: 's,
 {
-    let mut acc: FxHashMap<CellKey<D>, (f32, f32)> = FxHashMap::default();
+    let CellSums {
+        by_cell: acc,
+        ordered: cells,
+    } = sums;
+    acc.clear();
     for (pose, scan) in views {
         let sensor = pose.compose(&scan.sensor);
         let origin = sensor.translation();
@@ -1173,15 +1253,22 @@ where
     // The cells in the order the map stores them: the look-ups below walk
     // the map's memory in order instead of in hash order, and the new
     // entries come out in storage order, as their insertion wants them.
-    let mut cells: Vec<(CellKey<D>, (f32, f32))> = acc.into_iter().collect();
-    cells.sort_unstable_by_key(|&(k, _)| storage_order(k));
+    cells.clear();
+    cells.extend(acc.iter().map(|(&k, &v)| (storage_order(k), k, v)));
+    cells.sort_unstable_by_key(|c| c.0);
     let mut new = Vec::with_capacity(cells.len() / 4);
     let mut free = Vec::new();
-    for (k, (h, d)) in cells {
+    for &(_, k, (h, d)) in cells.iter() {
         match entry_of(k) {
             Some(e) if shared_free && e.hits <= 0.0 && h <= 0.0 => {
-                if record_free {
-                    free.push((e.node, k, d));
+                if record_free && let Some(position) = position_of(k, e.node) {
+                    free.push(FreeShare {
+                        owner: e.node,
+                        cell: k,
+                        position,
+                        before: e.distance,
+                        path: d,
+                    });
                 }
             }
             Some(e) => new.push((k, e.hits + h, e.distance + d)),
@@ -1190,13 +1277,65 @@ where
     }
     // Keys are unique and sorted: the map edits (and float sums) are the
     // same on every run and thread.
-    Observation { new, free }
+    let (free, starts) = by_shard(free);
+    Observation { new, free, starts }
+}
+
+/// `free` grouped by [`free_shard`] (a stable sort: each shard keeps
+/// storage order), with where each shard starts.
+fn by_shard<const D: usize>(
+    mut free: Vec<FreeShare<D>>,
+) -> (Vec<FreeShare<D>>, [usize; FREE_SHARDS + 1]) {
+    free.sort_by_cached_key(|f| free_shard(f.cell));
+    let mut starts = [0; FREE_SHARDS + 1];
+    for f in &free {
+        starts[free_shard(f.cell) + 1] += 1;
+    }
+    for s in 0..FREE_SHARDS {
+        starts[s + 1] += starts[s];
+    }
+    (free, starts)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::ancestry::Change;
+
+    #[test]
+    fn free_shares_group_by_shard_keeping_their_order() {
+        let free: Vec<FreeShare<2>> = (0..400)
+            .map(|i| FreeShare {
+                owner: 1,
+                cell: [i * 7 - 900, i % 13 - 6],
+                position: 0,
+                before: 0.0,
+                path: i as f32,
+            })
+            .collect();
+        let (grouped, starts) = by_shard(free);
+        assert_eq!((starts[0], starts[FREE_SHARDS]), (0, 400));
+        let obs = Observation {
+            new: Vec::new(),
+            free: grouped,
+            starts,
+        };
+        let mut seen = 0;
+        for s in 0..FREE_SHARDS {
+            let shard = obs.free_in(s);
+            assert!(shard.iter().all(|f| free_shard(f.cell) == s));
+            // Stable: each shard keeps the input order (here, by `path`).
+            assert!(shard.windows(2).all(|w| w[0].path < w[1].path));
+            seen += shard.len();
+        }
+        assert_eq!(seen, 400);
+        assert!(
+            (0..FREE_SHARDS)
+                .filter(|&s| !obs.free_in(s).is_empty())
+                .count()
+                > 4
+        );
+    }
 
     #[test]
     fn copies_count_the_copies_in_use_and_hold_back_merges() {

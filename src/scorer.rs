@@ -10,8 +10,10 @@ use crate::ancestry::{NodeId, Numbering};
 use crate::dpmap::{CachedView, DpMap, ViewCache};
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
+use crate::raycast::CellKey;
 use crate::scan::Scan;
 use rayon::prelude::*;
+use rustc_hash::FxHashMap;
 use std::sync::Mutex;
 
 /// A pose to score and the ancestry node whose map view scores it.
@@ -113,9 +115,21 @@ pub trait Scorer<const D: usize, P: Pose<D>>: Send + Sync {
 }
 
 /// The reference scorer: candidates in parallel with rayon, one map cache
-/// per worker thread.
+/// per worker thread (and one [`CellSums`] for the map update's traces).
 pub struct CpuScorer<const D: usize> {
     caches: Vec<Mutex<ViewCache<D>>>,
+    sums: Vec<Mutex<CellSums<D>>>,
+}
+
+/// Working memory for summing a traced scan per cell: kept per thread, so
+/// that each trace reuses the last one's tables instead of growing new
+/// ones (the map update traces every new particle's scan, every step).
+#[derive(Debug, Default)]
+pub struct CellSums<const D: usize> {
+    /// Cell → (hits, path length m) of the scans traced so far.
+    pub(crate) by_cell: FxHashMap<CellKey<D>, (f32, f32)>,
+    /// The same in storage order, with each cell's sort key.
+    pub(crate) ordered: Vec<(u128, CellKey<D>, (f32, f32))>,
 }
 
 impl<const D: usize> Default for CpuScorer<D> {
@@ -131,7 +145,17 @@ impl<const D: usize> CpuScorer<D> {
             caches: (0..=rayon::current_num_threads())
                 .map(|_| Mutex::new(ViewCache::new()))
                 .collect(),
+            sums: (0..=rayon::current_num_threads())
+                .map(|_| Mutex::new(CellSums::default()))
+                .collect(),
         }
+    }
+
+    /// This worker thread's [`CellSums`].
+    pub fn thread_sums(&self) -> std::sync::MutexGuard<'_, CellSums<D>> {
+        let last = self.sums.len() - 1;
+        let i = rayon::current_thread_index().map_or(last, |i| i.min(last));
+        self.sums[i].lock().unwrap_or_else(|e| e.into_inner())
     }
 
     /// This worker thread's map cache.
