@@ -264,13 +264,18 @@ impl<const D: usize> DpMap<D> {
     /// new version, which stamps the brick.
     fn cell_mut(&mut self, k: CellKey<D>) -> &mut CellList {
         let (b, i) = split(k);
+        &mut self.brick_mut(b).cells[i]
+    }
+
+    /// Brick `b` (allocated on first use), stamped with the current version.
+    fn brick_mut(&mut self, b: CellKey<D>) -> &mut Brick {
         let n = Self::brick_cells();
         let brick = self.bricks.entry(b).or_insert_with(|| Brick {
             cells: vec![CellList::new(); n].into_boxed_slice(),
             stamp: 0,
         });
         brick.stamp = self.version;
-        &mut brick.cells[i]
+        brick
     }
 
     fn node_index(&mut self, n: NodeId) -> &mut FxHashMap<CellKey<D>, u32> {
@@ -310,29 +315,31 @@ impl<const D: usize> DpMap<D> {
     /// parallel.
     pub fn insert_fresh_nodes(&mut self, fresh: &[FreshNode<D>]) {
         self.version = next_version();
-        let n = Self::brick_cells();
         let mut positions: Vec<Vec<u32>> = Vec::with_capacity(fresh.len());
         for (node, cells) in fresh {
             assert_eq!(self.node_entries(*node), 0, "node {node} is not fresh");
             let mut at = Vec::with_capacity(cells.len());
-            for run in cells.chunk_by(|a, b| split(a.0).0 == split(b.0).0) {
-                let brick = self
-                    .bricks
-                    .entry(split(run[0].0).0)
-                    .or_insert_with(|| Brick {
-                        cells: vec![CellList::new(); n].into_boxed_slice(),
-                        stamp: 0,
-                    });
-                brick.stamp = self.version;
-                for &(k, hits, distance) in run {
-                    let list = &mut brick.cells[split(k).1];
+            // One brick look-up per run of cells in the same brick.
+            let mut rest = &cells[..];
+            while let Some(&(first, _, _)) = rest.first() {
+                let b = split(first).0;
+                let brick = self.brick_mut(b);
+                let mut taken = 0;
+                for &(k, hits, distance) in rest {
+                    let (kb, i) = split(k);
+                    if kb != b {
+                        break;
+                    }
+                    let list = &mut brick.cells[i];
                     at.push(list.len() as u32);
                     list.push(Entry {
                         node: *node,
                         hits,
                         distance,
                     });
+                    taken += 1;
                 }
+                rest = &rest[taken..];
             }
             self.entries += cells.len();
             positions.push(at);

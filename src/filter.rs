@@ -1286,11 +1286,13 @@ where
 fn by_shard<const D: usize>(
     mut free: Vec<FreeShare<D>>,
 ) -> (Vec<FreeShare<D>>, [usize; FREE_SHARDS + 1]) {
-    free.sort_by_cached_key(|f| free_shard(f.cell));
     let mut starts = [0; FREE_SHARDS + 1];
-    for f in &free {
-        starts[free_shard(f.cell) + 1] += 1;
-    }
+    // The key is computed once per share: count the shards there.
+    free.sort_by_cached_key(|f| {
+        let s = free_shard(f.cell);
+        starts[s + 1] += 1;
+        s
+    });
     for s in 0..FREE_SHARDS {
         starts[s + 1] += starts[s];
     }

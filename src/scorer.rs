@@ -121,6 +121,14 @@ pub struct CpuScorer<const D: usize> {
     sums: Vec<Mutex<CellSums<D>>>,
 }
 
+/// The slot of the current rayon worker in `slots` (one per worker, then one
+/// for threads outside the pool).
+fn this_threads<T>(slots: &[Mutex<T>]) -> std::sync::MutexGuard<'_, T> {
+    let last = slots.len() - 1;
+    let i = rayon::current_thread_index().map_or(last, |i| i.min(last));
+    slots[i].lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// Working memory for summing a traced scan per cell: kept per thread, so
 /// that each trace reuses the last one's tables instead of growing new
 /// ones (the map update traces every new particle's scan, every step).
@@ -153,16 +161,12 @@ impl<const D: usize> CpuScorer<D> {
 
     /// This worker thread's [`CellSums`].
     pub fn thread_sums(&self) -> std::sync::MutexGuard<'_, CellSums<D>> {
-        let last = self.sums.len() - 1;
-        let i = rayon::current_thread_index().map_or(last, |i| i.min(last));
-        self.sums[i].lock().unwrap_or_else(|e| e.into_inner())
+        this_threads(&self.sums)
     }
 
     /// This worker thread's map cache.
     pub fn thread_cache(&self) -> std::sync::MutexGuard<'_, ViewCache<D>> {
-        let last = self.caches.len() - 1;
-        let i = rayon::current_thread_index().map_or(last, |i| i.min(last));
-        self.caches[i].lock().unwrap_or_else(|e| e.into_inner())
+        this_threads(&self.caches)
     }
 
     /// Score of one candidate (see [`Scorer::score`]).
