@@ -48,12 +48,24 @@ const fn brick_bits(d: usize) -> u32 {
 }
 
 /// Lists at most this long are scanned directly; longer ones go through the
-/// cache. Either gives the same entry; the scan of a short list (its
-/// entries' tree intervals are in cache) is cheaper than the cache's hash
-/// look-up and breakpoint build: on all of mit-csail 24 took 0.92× the CPU
-/// time of 6, and 245 against 282 MiB at peak (fewer cells resolved into
-/// the cache); 48 was no faster than 24 on its first 500 KB.
+/// cache. Either gives the same entry. A scan costs the list's length per
+/// look-up; the cache costs a breakpoint build per cell and version (per
+/// thread), then a few loads per look-up, so it pays only where many
+/// candidates look at the same cell: the limit depends on how many a
+/// thread scores per map version ([`ViewCache::expect_candidates`]). On
+/// all of mit-csail (50 particles, 500 candidates a step) 24 took 0.92× the
+/// CPU time of 6 and peaked at 245 against 282 MiB (fewer cells resolved);
+/// 48 was no faster than 24. At 3000 particles (30 000 candidates) 8 took
+/// 0.91–0.93× the CPU time of 24, 4 and 14 were within 4 % of 8; at 300
+/// particles 8 and 24 were within the noise; on all of mit-csail 8 was
+/// 1.04× slower than 24 and peaked 16 MiB higher.
 const DIRECT_SCAN_MAX: usize = 24;
+/// The limit where a thread scores at least [`MANY_CANDIDATES`] candidates.
+const DIRECT_SCAN_MAX_MANY: usize = 8;
+/// Candidates per thread and map version from which the cache's build is
+/// shared by enough look-ups to serve lists longer than
+/// [`DIRECT_SCAN_MAX_MANY`].
+const MANY_CANDIDATES: usize = 4096;
 
 /// A brick of `side^D` cells.
 #[derive(Debug, Clone)]
@@ -653,9 +665,11 @@ struct Span {
 /// makes a lookup O(1) amortised instead of a binary search over
 /// O(particles) breakpoints (the release's `observationArray` had O(1) by
 /// an array per cell and particle; this keeps O(entries) memory).
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct ViewCache<const D: usize> {
     version: u64,
+    /// Lists up to this long are scanned, not resolved (`DIRECT_SCAN_MAX`).
+    direct_scan_max: usize,
     /// Cell → index into `spans`.
     cells: FxHashMap<CellKey<D>, u32>,
     spans: Vec<Span>,
@@ -664,13 +678,36 @@ pub struct ViewCache<const D: usize> {
     stack: Vec<(u32, Entry)>,
 }
 
+impl<const D: usize> Default for ViewCache<D> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
 impl<const D: usize> ViewCache<D> {
     /// An empty cache.
     pub fn new() -> Self {
         Self {
             version: u64::MAX,
-            ..Default::default()
+            direct_scan_max: DIRECT_SCAN_MAX,
+            cells: FxHashMap::default(),
+            spans: Vec::new(),
+            breaks: Vec::new(),
+            scratch: Vec::new(),
+            stack: Vec::new(),
         }
+    }
+
+    /// Tells the cache how many candidates its thread is about to score
+    /// against the current map version: with many, more cells are worth
+    /// resolving (see `DIRECT_SCAN_MAX`). Only speed depends on it; every
+    /// look-up gives the same entry either way.
+    pub fn expect_candidates(&mut self, per_thread: usize) {
+        self.direct_scan_max = if per_thread >= MANY_CANDIDATES {
+            DIRECT_SCAN_MAX_MANY
+        } else {
+            DIRECT_SCAN_MAX
+        };
     }
 
     fn sync(&mut self, version: u64) {
@@ -858,7 +895,7 @@ impl<'a, const D: usize> MapView<'a, D> {
     #[inline]
     pub fn entry_cached(&mut self, cache: &mut ViewCache<D>, k: CellKey<D>) -> Option<Entry> {
         let list = self.list(k)?;
-        if list.len() <= DIRECT_SCAN_MAX {
+        if list.len() <= cache.direct_scan_max {
             return resolve(list, self.enter, self.exit, self.leaf_enter);
         }
         cache.sync(self.map.version);
@@ -1078,6 +1115,8 @@ mod tests {
         let mut longest = 0;
         for g in 0..150 {
             t.number(&mut num);
+            // Both scan limits: short lists resolved in the cache too.
+            cache.expect_candidates(if g % 2 == 0 { 0 } else { usize::MAX });
             let pick: Vec<usize> = (0..n).map(|_| rng.random_range(0..n)).collect();
             let mut new_private = Vec::new();
             let mut updates = Vec::new();

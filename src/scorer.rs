@@ -233,6 +233,7 @@ impl<const D: usize, P: Pose<D>> Scorer<D, P> for CpuScorer<D> {
             .par_chunks(run)
             .map(|ids| {
                 let mut cache = self.thread_cache();
+                cache.expect_candidates(n.div_ceil(rayon::current_num_threads().max(1)));
                 let sensors: Vec<P> = ids
                     .iter()
                     .map(|&i| candidates[i].pose.compose(&ctx.scan.sensor))

@@ -171,7 +171,7 @@ impl AccuracyOptions {
                 log: root.join("data/sim2d/sim2d.clf"),
                 particles: vec![100, 300, 1000, 3000],
                 warmup_scans: 20,
-                timed_steps: 5,
+                timed_steps: 10,
                 cfg: scaling_cfg,
             }),
         }

@@ -221,8 +221,8 @@ struct ScalingArgs {
     /// Processed scans that build the map before timing
     #[arg(long, default_value_t = 20)]
     scans: usize,
-    /// Steps timed per particle count
-    #[arg(long, default_value_t = 5)]
+    /// Steps timed per particle count (the counts take turns, step by step)
+    #[arg(long, default_value_t = 10)]
     steps: usize,
     /// 2-D log [default: the shipped simulated loop]
     #[arg(long)]

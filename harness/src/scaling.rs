@@ -139,17 +139,27 @@ pub fn run_scaling(opts: &ScalingOptions) -> Result<ScalingReport> {
             opts.timed_steps
         )));
     }
-    let mut points = Vec::with_capacity(opts.particles.len());
+    // Every count's filter is warmed up first, then the timed steps take
+    // turns (scan 1 at each count, scan 2 at each count, ...): on a shared
+    // machine whose speed drifts within a minute, timing one count after
+    // the other put the drift into the ratio (the same build gave 8× to
+    // 14× for 3000 vs 300); in turns, each count sees the same drift.
+    let mut filters = Vec::with_capacity(opts.particles.len());
     for &n in &opts.particles {
         let t0 = Instant::now();
-        let mut filter = log.warm_filter(n, opts.warmup_scans)?;
-        let warmup_s = t0.elapsed().as_secs_f64();
-        let mut times = Vec::with_capacity(opts.timed_steps);
-        for s in &log.steps[opts.warmup_scans..opts.warmup_scans + opts.timed_steps] {
+        let filter = log.warm_filter(n, opts.warmup_scans)?;
+        filters.push((filter, t0.elapsed().as_secs_f64()));
+    }
+    let mut times = vec![Vec::with_capacity(opts.timed_steps); filters.len()];
+    for s in &log.steps[opts.warmup_scans..opts.warmup_scans + opts.timed_steps] {
+        for ((filter, _), times) in filters.iter_mut().zip(&mut times) {
             let t = Instant::now();
             std::hint::black_box(filter.step(&s.input()));
             times.push(t.elapsed().as_secs_f64());
         }
+    }
+    let mut points = Vec::with_capacity(opts.particles.len());
+    for ((&n, (_, warmup_s)), times) in opts.particles.iter().zip(&filters).zip(&times) {
         let mean = times.iter().sum::<f64>() / times.len() as f64;
         let min = times.iter().cloned().fold(f64::INFINITY, f64::min);
         eprintln!(
@@ -161,7 +171,7 @@ pub fn run_scaling(opts: &ScalingOptions) -> Result<ScalingReport> {
             mean_step_s: mean,
             min_step_s: min,
             per_particle_us: mean / n as f64 * 1e6,
-            warmup_s,
+            warmup_s: *warmup_s,
         });
     }
     let (slope, intercept, exponent, ratio, ratio_ls, particle_ratio) = summarize(&points);

@@ -3,7 +3,11 @@
 //! Most allocated cells hold no entry or one (bricks are allocated whole,
 //! and particles mostly agree), and the bricks' lists are the largest part
 //! of the map: a list is therefore one entry stored inline, or a pointer to
-//! a heap list that carries its own length and capacity ([`ThinVec`]).
+//! a heap list that carries its own length and capacity ([`ThinVec`]). The
+//! length is also kept inline, in the padding beside the pointer: a lookup
+//! that only needs to know whether a list is long (the view cache's test)
+//! then reads the brick alone, not the heap list's header, which on large
+//! particle sets is a cache miss per cell.
 //! `SmallVec<[Entry; 1]>`, the general-purpose answer, takes 24 bytes a
 //! cell; on mit-csail that was 40 MB of the map's peak.
 
@@ -20,8 +24,10 @@ enum Repr {
     #[default]
     Empty,
     One(Entry),
-    /// Never shorter than two entries: shorter lists go back inline.
-    Many(ThinVec<Entry>),
+    /// Never shorter than two entries: shorter lists go back inline. The
+    /// `u32` is the vector's length, kept equal to it by every method that
+    /// changes it.
+    Many(u32, ThinVec<Entry>),
 }
 
 const _: () = assert!(std::mem::size_of::<CellList>() == 16);
@@ -40,10 +46,29 @@ impl CellList {
                 let mut v = ThinVec::with_capacity(2);
                 v.push(*a);
                 v.push(e);
-                self.0 = Repr::Many(v);
+                self.0 = Repr::Many(2, v);
             }
-            Repr::Many(v) => v.push(e),
+            Repr::Many(n, v) => {
+                v.push(e);
+                *n = v.len() as u32;
+            }
         }
+    }
+
+    /// Number of entries, read from the list itself (no heap access).
+    #[inline]
+    pub fn len(&self) -> usize {
+        match &self.0 {
+            Repr::Empty => 0,
+            Repr::One(_) => 1,
+            Repr::Many(n, _) => *n as usize,
+        }
+    }
+
+    /// Whether the list holds no entry.
+    #[inline]
+    pub fn is_empty(&self) -> bool {
+        matches!(self.0, Repr::Empty)
     }
 
     /// Removes entry `i` by moving the last entry into its place; panics if
@@ -57,7 +82,11 @@ impl CellList {
                 self.0 = Repr::Empty;
                 return a;
             }
-            Repr::Many(v) => v.swap_remove(i),
+            Repr::Many(n, v) => {
+                let e = v.swap_remove(i);
+                *n = v.len() as u32;
+                e
+            }
         };
         self.go_inline_if_short();
         e
@@ -72,8 +101,9 @@ impl CellList {
                     self.0 = Repr::Empty;
                 }
             }
-            Repr::Many(v) => {
+            Repr::Many(n, v) => {
                 v.truncate(len);
+                *n = v.len() as u32;
                 self.go_inline_if_short();
             }
         }
@@ -81,14 +111,14 @@ impl CellList {
 
     /// Whether the entries live on the heap.
     pub fn spilled(&self) -> bool {
-        matches!(self.0, Repr::Many(_))
+        matches!(self.0, Repr::Many(..))
     }
 
     /// Entries the list holds without reallocating.
     pub fn capacity(&self) -> usize {
         match &self.0 {
             Repr::Empty | Repr::One(_) => 1,
-            Repr::Many(v) => v.capacity(),
+            Repr::Many(_, v) => v.capacity(),
         }
     }
 
@@ -96,7 +126,9 @@ impl CellList {
     pub fn heap_bytes(&self) -> usize {
         match &self.0 {
             Repr::Empty | Repr::One(_) => 0,
-            Repr::Many(v) => 2 * std::mem::size_of::<usize>() + v.capacity() * size_of::<Entry>(),
+            Repr::Many(_, v) => {
+                2 * std::mem::size_of::<usize>() + v.capacity() * size_of::<Entry>()
+            }
         }
     }
 
@@ -104,7 +136,7 @@ impl CellList {
     /// once they agree: gives the memory back when the list uses a quarter
     /// of its capacity, or the map would grow with time rather than area.
     pub fn give_back_spare(&mut self) {
-        if let Repr::Many(v) = &mut self.0
+        if let Repr::Many(_, v) = &mut self.0
             && v.len() * 4 <= v.capacity()
         {
             v.shrink_to_fit();
@@ -112,7 +144,7 @@ impl CellList {
     }
 
     fn go_inline_if_short(&mut self) {
-        if let Repr::Many(v) = &self.0 {
+        if let Repr::Many(_, v) = &self.0 {
             match v.len() {
                 0 => self.0 = Repr::Empty,
                 1 => self.0 = Repr::One(v[0]),
@@ -129,7 +161,7 @@ impl Deref for CellList {
         match &self.0 {
             Repr::Empty => &[],
             Repr::One(e) => std::slice::from_ref(e),
-            Repr::Many(v) => v,
+            Repr::Many(_, v) => v,
         }
     }
 }
@@ -139,7 +171,7 @@ impl DerefMut for CellList {
         match &mut self.0 {
             Repr::Empty => &mut [],
             Repr::One(e) => std::slice::from_mut(e),
-            Repr::Many(v) => v,
+            Repr::Many(_, v) => v,
         }
     }
 }
@@ -157,6 +189,10 @@ mod tests {
     }
 
     fn nodes(l: &CellList) -> Vec<u32> {
+        // The inline length always agrees with the entries.
+        let entries: &[Entry] = l;
+        assert_eq!(l.len(), entries.len());
+        assert_eq!(l.is_empty(), entries.is_empty());
         l.iter().map(|e| e.node).collect()
     }
 
