@@ -537,10 +537,16 @@ impl LaserConfig {
     /// scan whose input states `(angle_min, angle_increment)` (radians):
     /// each part the configured override where there is one.
     pub fn beam_geometry(&self, angle_min: f64, angle_increment: f64) -> (f64, f64) {
+        let (min, inc) = self.beam_angle_overrides();
+        (min.unwrap_or(angle_min), inc.unwrap_or(angle_increment))
+    }
+
+    /// The configured `(angle_min, angle_increment)` overrides in radians,
+    /// `None` where the input's stand.
+    pub fn beam_angle_overrides(&self) -> (Option<f64>, Option<f64>) {
         (
-            self.angle_min_deg.map_or(angle_min, f64::to_radians),
-            self.angle_increment_deg
-                .map_or(angle_increment, f64::to_radians),
+            self.angle_min_deg.map(f64::to_radians),
+            self.angle_increment_deg.map(f64::to_radians),
         )
     }
 }

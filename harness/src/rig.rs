@@ -5,7 +5,6 @@
 use dpslam::config::Config;
 use dpslam::filter::{ParticleFilter, Sample, StepInput};
 use dpslam::geometry::{Pose, Pose2};
-use dpslam::io::log2d::open_log2d;
 use dpslam::laser_model::{LaserModel, Trace};
 use dpslam::pipeline::map2d::sensor_mount;
 use dpslam::scan::Scan;
@@ -49,7 +48,7 @@ pub struct PreparedLog {
 /// `min_rotation` since the last kept one; at most `max_steps` after the first.
 pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<PreparedLog> {
     cfg.validate()?;
-    let reader = open_log2d(log)?;
+    let reader = dpslam::pipeline::map2d::open_configured(log, cfg)?;
     let sensor = sensor_mount(cfg, reader.format());
     let f = &cfg.filter;
     let mut first = None;

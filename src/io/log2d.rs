@@ -190,6 +190,9 @@ pub struct LogReader2d {
     scans_read: usize,
     done: bool,
     retime: Retime,
+    /// `(angle_min, angle_increment)` in radians replacing the input's, each
+    /// where set ([`LogReader2d::with_beam_angles`]).
+    beam_angles: (Option<f64>, Option<f64>),
 }
 
 /// Opens the 2-D log at `path` (plain or gzip text, or a ROS bag with its
@@ -211,6 +214,7 @@ pub fn open_log2d_with(path: &Path, topics: &TopicChoice) -> Result<LogReader2d>
             scans_read: 0,
             done: false,
             retime: Retime::Off,
+            beam_angles: (None, None),
         });
     }
     let mut src = TextSource::open(path)?;
@@ -247,6 +251,7 @@ pub fn open_log2d_with(path: &Path, topics: &TopicChoice) -> Result<LogReader2d>
         scans_read: 0,
         done: false,
         retime: Retime::Off,
+        beam_angles: (None, None),
     })
 }
 
@@ -259,6 +264,19 @@ impl LogReader2d {
             (OdometryPairing::Retimed, LogFormat::Carmen) => Retime::Pending,
             _ => Retime::Off,
         };
+        self
+    }
+
+    /// Replaces the scans' stated beam geometry: `angle_min` and
+    /// `angle_increment` in radians (laser frame, counter-clockwise), each
+    /// where `Some`, for recordings whose stated angles are a converter's
+    /// guess (`laser.angle_min_deg`, `laser.angle_increment_deg`).
+    pub fn with_beam_angles(
+        mut self,
+        angle_min: Option<f64>,
+        angle_increment: Option<f64>,
+    ) -> Self {
+        self.beam_angles = (angle_min, angle_increment);
         self
     }
 
@@ -410,8 +428,10 @@ impl Iterator for LogReader2d {
             .next_scan()
             .and_then(|s| s.map(|s| self.retimed_scan(s)).transpose())
         {
-            Ok(Some(s)) => {
+            Ok(Some(mut s)) => {
                 self.scans_read += 1;
+                s.angle_min = self.beam_angles.0.unwrap_or(s.angle_min);
+                s.angle_increment = self.beam_angles.1.unwrap_or(s.angle_increment);
                 Some(Ok(s))
             }
             Ok(None) => {
@@ -461,6 +481,33 @@ mod tests {
         assert!(r.next().is_none());
         assert_eq!(r.scans_read(), 1);
         assert!(r.bytes_read() > 0 && r.bytes_read() == r.total_bytes());
+    }
+
+    #[test]
+    fn beam_angle_overrides_replace_the_stated_ones_each_where_set() {
+        let dir = tempfile::tempdir().unwrap();
+        let c = write(dir.path(), "b.clf", "FLASER 2 1 2 0 0 0 0 0 0 1.5 h 1.5\n");
+        let stated = open_log2d(&c).unwrap().next().unwrap().unwrap();
+        let half_pi = std::f64::consts::FRAC_PI_2;
+        assert!((stated.angle_min + half_pi).abs() < 1e-12);
+        let inc = open_log2d(&c)
+            .unwrap()
+            .with_beam_angles(None, Some(0.01))
+            .next()
+            .unwrap()
+            .unwrap();
+        assert_eq!(
+            (inc.angle_min, inc.angle_increment),
+            (stated.angle_min, 0.01)
+        );
+        let both = open_log2d(&c)
+            .unwrap()
+            .with_beam_angles(Some(-1.0), Some(0.02))
+            .next()
+            .unwrap()
+            .unwrap();
+        assert_eq!((both.angle_min, both.angle_increment), (-1.0, 0.02));
+        assert_eq!(both.ranges, stated.ranges, "ranges untouched");
     }
 
     /// A robot driving along x at 1 m/s: ODOM at 10 Hz (t = 0.0, 0.1, …),

@@ -231,6 +231,17 @@ pub fn run_filter2d(
     run_filter2d_observed(log, cfg, backend, &mut super::no_progress)
 }
 
+/// Opens `log` as `map2d` reads it under `cfg`: the bag topics
+/// (`cfg.bag`), the odometry pairing (`cfg.input.odometry`) and the beam
+/// angle overrides (`cfg.laser`) applied by the reader, so every consumer
+/// of the scans sees the same ones.
+pub fn open_configured(log: &Path, cfg: &Config) -> Result<LogReader2d> {
+    let (angle_min, angle_increment) = cfg.laser.beam_angle_overrides();
+    Ok(open_log2d_with(log, &cfg.bag)?
+        .with_odometry(cfg.input.odometry)
+        .with_beam_angles(angle_min, angle_increment))
+}
+
 /// [`run_filter2d`], reporting progress in bytes of the log read.
 pub fn run_filter2d_observed(
     log: &Path,
@@ -244,14 +255,13 @@ pub fn run_filter2d_observed(
     let survey = RangeSurvey::of_scans(open_log2d_with(log, &cfg.bag)?)?;
     let sensor_max = survey.sensor_max(cfg.laser.trust_declared_max_range);
     slam.set_no_return_range(sensor_max);
-    let mut reader = open_log2d_with(log, &cfg.bag)?.with_odometry(cfg.input.odometry);
+    let mut reader = open_configured(log, cfg)?;
     let format = reader.format();
     slam.set_mount(sensor_mount_of(cfg, &reader));
     let total = reader.total_bytes();
     let (mut first_time, mut last_time) = (None, None);
     while let Some(item) = reader.next() {
-        let mut s: LaserScan2d = item?;
-        (s.angle_min, s.angle_increment) = cfg.laser.beam_geometry(s.angle_min, s.angle_increment);
+        let s: LaserScan2d = item?;
         let t = s.timestamp.unwrap_or(slam.scans() as f64);
         if s.timestamp.is_some() {
             first_time.get_or_insert(t);
