@@ -533,16 +533,9 @@ pub struct LaserConfig {
 }
 
 impl LaserConfig {
-    /// The beam geometry `(angle_min, angle_increment)` in radians for a
-    /// scan whose input states `(angle_min, angle_increment)` (radians):
-    /// each part the configured override where there is one.
-    pub fn beam_geometry(&self, angle_min: f64, angle_increment: f64) -> (f64, f64) {
-        let (min, inc) = self.beam_angle_overrides();
-        (min.unwrap_or(angle_min), inc.unwrap_or(angle_increment))
-    }
-
     /// The configured `(angle_min, angle_increment)` overrides in radians,
-    /// `None` where the input's stand.
+    /// `None` where the input's stand (the 2-D reader applies them:
+    /// `LogReader2d::with_beam_angles`).
     pub fn beam_angle_overrides(&self) -> (Option<f64>, Option<f64>) {
         (
             self.angle_min_deg.map(f64::to_radians),
@@ -903,13 +896,14 @@ mod tests {
     #[test]
     fn beam_angle_overrides_replace_each_part_and_are_checked() {
         let mut c = Config::default();
-        assert_eq!(c.laser.beam_geometry(-1.5, 0.01), (-1.5, 0.01));
+        assert_eq!(c.laser.beam_angle_overrides(), (None, None));
         c.laser.angle_increment_deg = Some(0.5);
-        let (min, inc) = c.laser.beam_geometry(-1.5, 0.01);
-        assert_eq!(min, -1.5);
-        assert!((inc - 0.5f64.to_radians()).abs() < 1e-15);
+        let (min, inc) = c.laser.beam_angle_overrides();
+        assert_eq!(min, None);
+        assert!((inc.unwrap() - 0.5f64.to_radians()).abs() < 1e-15);
         c.laser.angle_min_deg = Some(-135.0);
-        assert!((c.laser.beam_geometry(-1.5, 0.01).0 + 0.75 * std::f64::consts::PI).abs() < 1e-15);
+        let min = c.laser.beam_angle_overrides().0.unwrap();
+        assert!((min + 0.75 * std::f64::consts::PI).abs() < 1e-15);
         let back: Config = toml::from_str(&c.to_toml()).unwrap();
         assert_eq!(back, c);
         c.laser.angle_increment_deg = Some(0.0);
