@@ -309,30 +309,27 @@ impl<const D: usize> DpMap<D> {
 
     /// Adds the observations of a node that has no entries yet (panics
     /// otherwise), one per cell: `(cell, hits, distance m)`. Cheaper than
-    /// [`DpMap::insert`] one by one (the node's index is sized once); best
-    /// given in [`storage_order`].
+    /// [`DpMap::insert`] one by one; best given in [`storage_order`].
     pub fn insert_fresh(&mut self, node: NodeId, cells: &[(CellKey<D>, f32, f32)]) {
-        assert_eq!(self.node_entries(node), 0, "node {node} is not fresh");
-        self.version = next_version();
-        let mut index = FxHashMap::with_capacity_and_hasher(cells.len(), rustc_hash::FxBuildHasher);
-        for &(k, hits, distance) in cells {
-            self.put(&mut index, node, k, hits, distance);
-        }
-        *self.node_index(node) = index;
+        self.insert_fresh_nodes(&[(node, cells)]);
     }
 
     /// [`DpMap::insert_fresh`] for several nodes at once, in order (each
-    /// node's cells unique and best in [`storage_order`]). The lists are
-    /// appended one brick at a time; the nodes' indexes are built in
-    /// parallel.
-    pub fn insert_fresh_nodes(&mut self, fresh: &[FreshNode<D>]) {
+    /// node's cells unique and best in [`storage_order`]): a list of
+    /// [`FreshNode`]s, or of `(node, &cells)`. The lists are appended one
+    /// brick at a time; the nodes' indexes are built in parallel.
+    pub fn insert_fresh_nodes<C>(&mut self, fresh: &[(NodeId, C)])
+    where
+        C: AsRef<[(CellKey<D>, f32, f32)]> + Sync,
+    {
         self.version = next_version();
         let mut positions: Vec<Vec<u32>> = Vec::with_capacity(fresh.len());
         for (node, cells) in fresh {
+            let cells = cells.as_ref();
             assert_eq!(self.node_entries(*node), 0, "node {node} is not fresh");
             let mut at = Vec::with_capacity(cells.len());
             // One brick look-up per run of cells in the same brick.
-            let mut rest = &cells[..];
+            let mut rest = cells;
             while let Some(&(first, _, _)) = rest.first() {
                 let b = split(first).0;
                 let brick = self.brick_mut(b);
@@ -359,10 +356,14 @@ impl<const D: usize> DpMap<D> {
         let indexes: Vec<FxHashMap<CellKey<D>, u32>> = fresh
             .par_iter()
             .zip(positions)
-            .map(|((_, cells), at)| cells.iter().map(|c| c.0).zip(at).collect())
+            .map(|((_, cells), at)| cells.as_ref().iter().map(|c| c.0).zip(at).collect())
             .collect();
         for ((node, cells), index) in fresh.iter().zip(indexes) {
-            debug_assert_eq!(index.len(), cells.len(), "node {node}: cells repeat");
+            debug_assert_eq!(
+                index.len(),
+                cells.as_ref().len(),
+                "node {node}: cells repeat"
+            );
             *self.node_index(*node) = index;
         }
     }

@@ -146,6 +146,11 @@ pub struct AccuracyOptions {
     /// (`map2d --learn-motion N`, dissertation ch. 6); 0 maps with the
     /// configured model. The wall time then covers the rounds as well.
     pub learn_motion: usize,
+    /// Reuse a dataset's earlier `map2d` run in `out` when it was made with
+    /// the same settings ([`run_settings`]): rescore and redraw only. The
+    /// settings do not include the code, so clear `out` after changing it.
+    /// Not with `learn_motion` (the learning rounds' time is not recorded).
+    pub reuse_runs: bool,
 }
 
 impl AccuracyOptions {
@@ -167,6 +172,7 @@ impl AccuracyOptions {
             command: String::new(),
             mapper: None,
             learn_motion: 0,
+            reuse_runs: false,
             scaling: Some(ScalingOptions {
                 log: root.join("data/sim2d/sim2d.clf"),
                 particles: vec![100, 300, 1000, 3000],
@@ -474,15 +480,33 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
             "laser pose {o:?} in the robot frame (sensor_offset)"
         ));
     }
+    let settings = run_settings(d, &cfg, opts);
+    let settings_path = dir.join("run.settings");
+    let earlier = reusable_run(&run_dir, &settings_path, &settings, opts);
+    if earlier.is_none() {
+        // A run cut short must not look reusable later.
+        match std::fs::remove_file(&settings_path) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(Error::io(&settings_path, e));
+            }
+            _ => {}
+        }
+    }
     let mapping = Instant::now();
-    let (mut summary, peak) = match &opts.mapper {
-        Some(exe) => {
-            let config = dir.join("config.toml");
-            let s = map2d_process(exe, &log, &run_dir, &config, &cfg, opts.learn_motion)?;
+    let (mut summary, peak) = match (earlier, &opts.mapper) {
+        (Some(s), _) => {
+            notes.push("mapping reused from an earlier run with the same settings".into());
             let peak = s.peak_memory_mib;
             (s, peak)
         }
-        None => {
+        (None, Some(exe)) => {
+            let config = dir.join("config.toml");
+            let s = map2d_process(exe, &log, &run_dir, &config, &cfg, opts.learn_motion)?;
+            dpslam::pipeline::write_atomic(&settings_path, settings.as_bytes())?;
+            let peak = s.peak_memory_mib;
+            (s, peak)
+        }
+        (None, None) => {
             let reset = reset_peak_memory();
             let s = if opts.learn_motion > 0 {
                 let backend = dpslam::backend::Backend::Cpu;
@@ -490,6 +514,7 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
             } else {
                 run_map2d(&log, &run_dir, &cfg)?
             };
+            dpslam::pipeline::write_atomic(&settings_path, settings.as_bytes())?;
             (s, dpslam::pipeline::peak_memory_mib().filter(|_| reset))
         }
     };
@@ -625,6 +650,47 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
     };
     dpslam::pipeline::write_json(&dir.join("result.json"), &result)?;
     Ok(result)
+}
+
+/// What a dataset's mapping depends on, besides the code and the input
+/// files: the configuration as `map2d` gets it, the subset, the odometry
+/// noise of a perturbed log, the learning rounds. Stored beside a finished
+/// run (`run.settings`) for [`AccuracyOptions::reuse_runs`].
+pub fn run_settings(d: &Dataset, cfg: &Config, opts: &AccuracyOptions) -> String {
+    let noise = match d.source {
+        Source::Corrected { .. } => format!("{} seed {}", opts.noise, opts.noise_seed),
+        _ => "none".into(),
+    };
+    format!(
+        "{}\n# input: {:?}\n# max_scans: {:?}\n# odometry noise: {noise}\n# learn_motion: {}\n",
+        cfg.to_toml().trim_end(),
+        d.source,
+        d.max_scans,
+        opts.learn_motion
+    )
+}
+
+/// The summary of the earlier run in `run_dir`, if reuse is on and it was
+/// made with `settings`.
+fn reusable_run(
+    run_dir: &Path,
+    settings_path: &Path,
+    settings: &str,
+    opts: &AccuracyOptions,
+) -> Option<dpslam::pipeline::map2d::Map2dSummary> {
+    if !opts.reuse_runs || opts.learn_motion > 0 {
+        return None;
+    }
+    if std::fs::read_to_string(settings_path).ok()? != settings {
+        return None;
+    }
+    for f in ["trajectory.tum", "map.png"] {
+        if !run_dir.join(f).is_file() {
+            return None;
+        }
+    }
+    let text = std::fs::read_to_string(run_dir.join("run.json")).ok()?;
+    serde_json::from_str(&text).ok()
 }
 
 /// The source tree's git commit (short hash, "+ changes" when tracked files

@@ -140,6 +140,11 @@ struct AccuracyArgs {
     /// --learn-motion N`; the wall time includes them)
     #[arg(long, default_value_t = 0, value_name = "N")]
     learn_motion: usize,
+    /// Reuse each dataset's earlier run in --out when it was made with the
+    /// same settings (configuration, subset, odometry noise): rescore and
+    /// redraw only. The code is not compared: clear --out after changing it
+    #[arg(long)]
+    reuse_runs: bool,
 }
 
 /// A benchmark's configuration: as `map2d`'s, without a `--seed` flag (the
@@ -186,6 +191,7 @@ fn run_accuracy(a: AccuracyArgs) -> dpslam::Result<()> {
     opts.only = a.only;
     opts.noise_seed = a.noise_seed;
     opts.learn_motion = a.learn_motion;
+    opts.reuse_runs = a.reuse_runs;
     opts.command = std::env::args().collect::<Vec<_>>().join(" ");
     // Each dataset in a `dpslam map2d` process of its own: per-run peak memory.
     opts.mapper = Some(mapper()?);

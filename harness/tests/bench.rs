@@ -208,6 +208,37 @@ fn quick_accuracy_on_the_simulator() {
     assert!(opts.out.join("results.json").is_file());
 }
 
+/// `--reuse-runs`: a finished dataset is rescored without mapping it again
+/// when its settings are the same, and mapped again when they are not.
+#[test]
+fn a_finished_run_is_reused_only_with_the_same_settings() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut opts = quick_sim2d(dir.path());
+    opts.reuse_runs = true;
+    let traj = opts.out.join("sim2d/run/trajectory.tum");
+    let first = run_accuracy(&opts).unwrap().runs.remove(0);
+    assert!(first.note.as_deref().is_none_or(|n| !n.contains("reused")));
+    // A reused run keeps the file, a new run rewrites it.
+    let stamp = std::fs::metadata(&traj).unwrap().modified().unwrap();
+    let again = run_accuracy(&opts).unwrap().runs.remove(0);
+    assert!(
+        again.note.as_deref().unwrap_or("").contains("reused"),
+        "{again:?}"
+    );
+    assert_eq!(again.ate_rmse_m, first.ate_rmse_m);
+    assert_eq!(again.wall_time_s, first.wall_time_s);
+    assert_eq!(std::fs::metadata(&traj).unwrap().modified().unwrap(), stamp);
+    // Other settings: mapped again.
+    opts.cfg.filter.particles = 11;
+    let other = run_accuracy(&opts).unwrap().runs.remove(0);
+    assert_eq!(other.particles, 11);
+    assert!(other.note.as_deref().is_none_or(|n| !n.contains("reused")));
+    // Without the flag nothing is reused.
+    opts.reuse_runs = false;
+    let fresh = run_accuracy(&opts).unwrap().runs.remove(0);
+    assert!(fresh.note.as_deref().is_none_or(|n| !n.contains("reused")));
+}
+
 /// `bench accuracy --learn-motion 1`: the dataset is mapped by a `dpslam
 /// map2d --learn-motion 1` process of its own, which leaves the learned
 /// model in the run folder, and the report says the model was learned.
