@@ -181,6 +181,14 @@ pub struct ScanMatchConfig {
     /// instead of once per particle: cheaper, not shown to be as accurate
     /// (docs/PROPOSAL-2D.md).
     pub per_group: bool,
+    /// Rank the search's candidate poses by match score × motion prior
+    /// (Olson 2009's posterior search) instead of match score alone: where
+    /// the window holds two near-equal peaks (a door frame repeated along
+    /// a corridor), take the one the odometry supports. The sub-cell
+    /// refinement and the curvature still use the match score alone.
+    /// Opt-in: measured better on perturbed ACES and sim2d, but it lost
+    /// fr079-raw in its one run there (docs/PROPOSAL-2D.md).
+    pub prior_in_search: bool,
 }
 
 impl Default for ScanMatchConfig {
@@ -202,6 +210,7 @@ impl Default for ScanMatchConfig {
             samples_per_particle: 3,
             quick_culling: true,
             per_group: false,
+            prior_in_search: false,
         }
     }
 }

@@ -232,6 +232,41 @@ struct Scored {
     score: f64,
 }
 
+/// The motion model's Gaussian of a particle's new pose, in the map frame,
+/// as the correlative search's prior (`scan_match.prior_in_search`).
+struct SearchPrior {
+    /// Mean `[x m, y m, θ rad]`.
+    mean: [f64; 3],
+    /// Information (inverse covariance) of `[x, y, θ]`.
+    info: Matrix3<f64>,
+}
+
+impl SearchPrior {
+    /// The motion model's prior of the pose reached from `prev` by the
+    /// odometry motion `odometry`; `None` if its covariance is singular.
+    fn new(motion: &CdtModel, prev: &Pose2, odometry: &Pose2) -> Option<Self> {
+        let (mu, sigma) = motion.local_gaussian(odometry);
+        let mean = xyt(&(prev * pose2(mu[0], mu[1], mu[2])));
+        // Previous robot frame into the map frame.
+        let r = rot3(xyt(prev).2);
+        let info = r * sigma.try_inverse()? * r.transpose();
+        Some(Self {
+            mean: [mean.0, mean.1, mean.2],
+            info,
+        })
+    }
+
+    /// `ln N(pose; mean, info⁻¹)` up to a constant.
+    fn log_density(&self, x: f64, y: f64, t: f64) -> f64 {
+        let d = Vector3::new(
+            x - self.mean[0],
+            y - self.mean[1],
+            wrap_angle(t - self.mean[2]),
+        );
+        -0.5 * d.dot(&(self.info * d))
+    }
+}
+
 /// A scan registration: the refined pose and its information.
 struct Match {
     /// Best pose (map frame).
@@ -257,11 +292,24 @@ impl ScanMatcher2d {
         points: &[[f64; 2]],
         beams: usize,
         guess: &Pose2,
+        prior: Option<&SearchPrior>,
     ) -> Option<Match> {
         if points.is_empty() {
             return None;
         }
         let c = &self.cfg;
+        // The field's score is a sum over `points.len()` endpoints of a
+        // σ-wide field; the samples are weighed by `beams` ranges of the DP
+        // model's σ_DP: this scales the score (and its curvature) to that
+        // likelihood's, then by 1 / temperature.
+        let scale = (beams as f64 / points.len() as f64) * (c.sigma * c.sigma / self.variance)
+            / c.temperature.max(1e-6);
+        // What candidates are ranked by: the score, or with a prior the
+        // log posterior up to a constant (both in the DP likelihood's nats).
+        let rank = |score: f64, x: f64, y: f64, t: f64| match prior {
+            Some(p) => scale * score + p.log_density(x, y, t),
+            None => score,
+        };
         let res = field.res;
         let f = field.f;
         let big = f as f64 * res;
@@ -330,8 +378,12 @@ impl ScanMatcher2d {
             }
         }
         // The best coarse poses, then every fine pose inside each.
+        let keys: Vec<f64> = coarse
+            .iter()
+            .map(|p| rank(p.score, gx + p.dx, gy + p.dy, gt + p.dt))
+            .collect();
         let mut order: Vec<usize> = (0..coarse.len()).collect();
-        order.sort_by(|&a, &b| coarse[b].score.total_cmp(&coarse[a].score).then(a.cmp(&b)));
+        order.sort_by(|&a, &b| keys[b].total_cmp(&keys[a]).then(a.cmp(&b)));
         let mut fine: Vec<Scored> = Vec::new();
         // Fine angles reach the neighbouring coarse angles: the coarse score
         // bounds translations, not turns.
@@ -376,10 +428,22 @@ impl ScanMatcher2d {
                 }
             }
         }
-        let best = fine.iter().copied().fold(None::<Scored>, |b, p| match b {
-            Some(b) if b.score >= p.score => Some(b),
-            _ => Some(p),
-        })?;
+        // Fine poses are cell corners; the refinement starts half a cell on.
+        let key = |p: &Scored| {
+            let h = 0.5 * res;
+            rank(p.score, gx + p.dx + h, gy + p.dy + h, gt + p.dt)
+        };
+        let best = fine
+            .iter()
+            .copied()
+            .fold(None::<(Scored, f64)>, |b, p| {
+                let k = key(&p);
+                match b {
+                    Some(b) if b.1 >= k => Some(b),
+                    _ => Some((p, k)),
+                }
+            })?
+            .0;
         // Sub-cell refinement: hill-climb on the interpolated field from
         // the best grid pose, halving the steps (GMapping's matcher).
         let floor = c.floor.clamp(1e-6, 1.0);
@@ -512,13 +576,9 @@ impl ScanMatcher2d {
                 field.interp(x, y) > 0.0
             })
             .count();
-        // The field's score is a sum over `points.len()` endpoints of a
-        // σ-wide field; the samples are weighed by `beams` ranges of the DP
-        // model's σ_DP: scale the curvature to that likelihood's, then by
-        // 1 / temperature. Directions the scan does not constrain (a
-        // corridor's axis: curvature ≤ 0) carry no information.
-        let scale = (beams as f64 / points.len() as f64) * (c.sigma * c.sigma / self.variance)
-            / c.temperature.max(1e-6);
+        // The curvature in the DP likelihood's units (`scale`). Directions
+        // the scan does not constrain (a corridor's axis: curvature ≤ 0)
+        // carry no information.
         let eig = nalgebra::SymmetricEigen::new(-hess * scale);
         let floor_var = Vector3::new(
             c.min_std_xy * c.min_std_xy,
@@ -704,15 +764,24 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                 // map-frame mode and its information are the group's; each
                 // member fuses them with its own motion prior. Otherwise
                 // each member registers from its own guess.
+                let prior = |i: usize| {
+                    c.prior_in_search
+                        .then(|| {
+                            SearchPrior::new(&self.motion, &ctx.particles[i].pose, ctx.odometry)
+                        })
+                        .flatten()
+                };
                 let shared = c.per_group.then(|| {
-                    self.register(&field, &lut, &points, beams, &guesses[m[0]])
+                    let p = prior(m[0]);
+                    self.register(&field, &lut, &points, beams, &guesses[m[0]], p.as_ref())
                         .filter(|r| r.overlap >= c.min_overlap)
                 });
                 m.iter()
                     .map(|&i| {
                         let prev = &ctx.particles[i].pose;
                         let own = || {
-                            self.register(&field, &lut, &points, beams, &guesses[i])
+                            let p = prior(i);
+                            self.register(&field, &lut, &points, beams, &guesses[i], p.as_ref())
                                 .filter(|r| r.overlap >= c.min_overlap)
                         };
                         let q = match &shared {
@@ -821,7 +890,14 @@ mod tests {
         // The odometry guess is off by 0.4 m, −0.3 m and 12°.
         let guess = pose2(2.9, 1.5, 0.3 + 12f64.to_radians());
         let r = m
-            .register(&field, &lut(m.cfg.floor), &points, points.len(), &guess)
+            .register(
+                &field,
+                &lut(m.cfg.floor),
+                &points,
+                points.len(),
+                &guess,
+                None,
+            )
             .unwrap();
         let (mode, overlap) = (r.mode, r.overlap);
         let cov = r.info.try_inverse().unwrap();
@@ -842,6 +918,68 @@ mod tests {
             "{cov}"
         );
         assert!(cov[(2, 2)].sqrt() < 0.015, "{cov}");
+    }
+
+    /// A corridor whose walls carry posts every 0.5 m: two poses 0.5 m
+    /// apart along it inside the window match the scan equally well. The
+    /// motion prior decides between them, whichever side the guess is on.
+    #[test]
+    fn the_motion_prior_picks_between_repeated_structures() {
+        let m = matcher();
+        let post = |x: f64, y: f64| ([x, y], 0.9);
+        let mut walls = Vec::new();
+        for k in -60..=60 {
+            let x = k as f64 * 0.5;
+            // A post: a 3-cell stub out of each wall.
+            for d in 0..3 {
+                let d = d as f64 / 35.0;
+                walls.push(post(x, 0.0 + d));
+                walls.push(post(x, 2.0 - d));
+            }
+        }
+        // The scan from (0, 1), heading 0, sees the posts at x in [-2, 2].
+        let points: Vec<[f64; 2]> = (-4..=4)
+            .flat_map(|k| {
+                let x = k as f64 * 0.5;
+                (0..3).flat_map(move |d| {
+                    let d = d as f64 / 35.0;
+                    [[x, -1.0 + d], [x, 1.0 - d]]
+                })
+            })
+            .collect();
+        let field = Field::new(
+            [-32.0, -4.0],
+            [32.0, 6.0],
+            m.res(),
+            m.cfg.coarse_factor,
+            m.cfg.sigma,
+            &walls,
+        );
+        let info = Matrix3::from_diagonal(&Vector3::new(1.0 / 0.01, 1.0 / 0.01, 1.0 / 0.01));
+        for (prior_x, want_x) in [(0.15, 0.0), (0.35, 0.5), (-0.15, 0.0), (-0.35, -0.5)] {
+            let prior = SearchPrior {
+                mean: [prior_x, 1.0, 0.0],
+                info,
+            };
+            // The guess is where the odometry says; the window (±0.5 m)
+            // holds both the post pattern at x = 0 and a copy 0.5 m away.
+            let guess = pose2(prior_x, 1.0, 0.0);
+            let r = m
+                .register(
+                    &field,
+                    &lut(m.cfg.floor),
+                    &points,
+                    180,
+                    &guess,
+                    Some(&prior),
+                )
+                .unwrap();
+            let x = r.mode.translation.x;
+            assert!(
+                (x - want_x).abs() < 0.05,
+                "prior at {prior_x}: mode {x}, want {want_x}"
+            );
+        }
     }
 
     #[test]
@@ -872,7 +1010,7 @@ mod tests {
         let guess = pose2(0.0, 1.1, 0.0);
         // The 60 endpoints thinned from a scan of 180 returns.
         let r = m
-            .register(&field, &lut(m.cfg.floor), &points, 180, &guess)
+            .register(&field, &lut(m.cfg.floor), &points, 180, &guess, None)
             .unwrap();
         let (mode, info) = (r.mode, r.info);
         assert!((mode.translation.y - 1.0).abs() < 0.03, "{mode:?}");
