@@ -68,6 +68,20 @@ impl ScanMatcher2d {
     fn res(&self) -> f64 {
         self.cfg.field_cells.max(1.0) * self.cell
     }
+
+    /// The likelihood field of `occupied` (map-frame points, m, with their
+    /// stop probabilities) over the box `lo`..`hi`, at this matcher's
+    /// resolution, coarse factor and σ.
+    fn field(&self, lo: [f64; 2], hi: [f64; 2], occupied: &[([f64; 2], f64)]) -> Field {
+        Field::new(
+            lo,
+            hi,
+            self.res(),
+            self.cfg.coarse_factor,
+            self.cfg.sigma,
+            occupied,
+        )
+    }
 }
 
 /// A likelihood field over a box of the map frame.
@@ -757,7 +771,7 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                         })
                     })
                     .collect();
-                let field = Field::new(lo, hi, res, c.coarse_factor, c.sigma, &occupied);
+                let field = self.field(lo, hi, &occupied);
                 // With `per_group`, one registration per group: its members
                 // share the view, and their guesses differ by their own last
                 // samples' spread (cm), inside the search window, so the
@@ -879,14 +893,7 @@ mod tests {
         let m = matcher();
         let truth = pose2(2.5, 1.8, 0.3);
         let (walls, points) = room(&truth);
-        let field = Field::new(
-            [-2.0, -2.0],
-            [8.0, 6.0],
-            m.res(),
-            m.cfg.coarse_factor,
-            m.cfg.sigma,
-            &walls,
-        );
+        let field = m.field([-2.0, -2.0], [8.0, 6.0], &walls);
         // The odometry guess is off by 0.4 m, −0.3 m and 12°.
         let guess = pose2(2.9, 1.5, 0.3 + 12f64.to_radians());
         let r = m
@@ -947,14 +954,7 @@ mod tests {
                 })
             })
             .collect();
-        let field = Field::new(
-            [-32.0, -4.0],
-            [32.0, 6.0],
-            m.res(),
-            m.cfg.coarse_factor,
-            m.cfg.sigma,
-            &walls,
-        );
+        let field = m.field([-32.0, -4.0], [32.0, 6.0], &walls);
         let info = Matrix3::from_diagonal(&Vector3::new(1.0 / 0.01, 1.0 / 0.01, 1.0 / 0.01));
         for (prior_x, want_x) in [(0.15, 0.0), (0.35, 0.5), (-0.15, 0.0), (-0.35, -0.5)] {
             let prior = SearchPrior {
@@ -999,14 +999,7 @@ mod tests {
                 if k < 30 { [x, -1.0] } else { [x - 4.0, 1.0] }
             })
             .collect();
-        let field = Field::new(
-            [-22.0, -4.0],
-            [22.0, 6.0],
-            m.res(),
-            m.cfg.coarse_factor,
-            m.cfg.sigma,
-            &walls,
-        );
+        let field = m.field([-22.0, -4.0], [22.0, 6.0], &walls);
         let guess = pose2(0.0, 1.1, 0.0);
         // The 60 endpoints thinned from a scan of 180 returns.
         let r = m
