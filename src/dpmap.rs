@@ -816,7 +816,8 @@ impl<const D: usize> ViewCache<D> {
         }
         let br = &breaks[span.first as usize..(span.first + span.len) as usize];
         let c = span.cursor as usize;
-        let i = if br[c].start <= p {
+        // `span.lo` is `br[c].start`, kept in the bucket: no load here.
+        let i = if span.lo <= p {
             // Gallop forward from the cursor: a cell not visited by the last
             // few particles lags behind by a few breakpoints, rarely more.
             let mut lo = c;
