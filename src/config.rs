@@ -189,6 +189,28 @@ pub struct ScanMatchConfig {
     /// Opt-in: measured better on perturbed ACES and sim2d, but it lost
     /// fr079-raw in its one run there (docs/PROPOSAL-2D.md).
     pub prior_in_search: bool,
+    /// What a cell with hits weighs in the likelihood field the scan is
+    /// matched against: `"stop-probability"` (the default) or `"hits"`
+    /// ([`FieldWeight`]).
+    pub field_weight: FieldWeight,
+}
+
+/// What a cell with hits weighs in the scan matcher's likelihood field
+/// (`scan_match.field_weight`; measured in docs/PROPOSAL-2D.md, session 15).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum FieldWeight {
+    /// Its stop probability under the view, `1 − exp(−ρ·cell)` with
+    /// ρ = hits / distance travelled in it: what moved or lets the beam
+    /// through (people, glass, chair legs) weighs little. So does a wall
+    /// seen only at grazing incidence, where most beams ran along it before
+    /// one stopped: along a corridor that pulls the match back towards the
+    /// robot's last poses, where it saw the walls head-on.
+    #[default]
+    StopProbability,
+    /// 1 for every cell with a hit: no pull along corridors, but what moved
+    /// counts as much as what stays.
+    Hits,
 }
 
 impl Default for ScanMatchConfig {
@@ -211,6 +233,7 @@ impl Default for ScanMatchConfig {
             quick_culling: true,
             per_group: false,
             prior_in_search: false,
+            field_weight: FieldWeight::default(),
         }
     }
 }

@@ -6,7 +6,8 @@
 //! ancestry node: they differ only in their own last observation), the
 //! cells that view sees as occupied near the scan are rasterised into a
 //! likelihood field: per field cell, `occ · exp(−d²/2σ²)` of the nearest
-//! occupied cell, `occ = 1 − exp(−ρ·cell)` its stop probability. Each
+//! occupied cell, `occ = 1 − exp(−ρ·cell)` its stop probability, or 1 for
+//! every cell with a hit (`scan_match.field_weight`, [`FieldWeight`]). Each
 //! particle of the group then registers the scan's endpoints against that
 //! field around its own odometry guess `prev · odometry`, over the whole
 //! window (`±window_xy` m, `±window_theta` rad), in two levels: a coarse
@@ -14,9 +15,11 @@
 //! blocks (an upper bound of every finer translation inside, as in Olson's
 //! multi-resolution search) at coarse angle steps, then the finest level
 //! around the best `candidates` coarse poses. The score surface gives the
-//! mode and a covariance (Olson 2009, eq. 15: the weighted second moment of
-//! the evaluated poses), which is wide along a direction the scan does not
-//! constrain (a corridor's axis, open space). That Gaussian is fused with
+//! mode and a covariance: the curvature of the score at the mode (the
+//! Laplace approximation; Olson 2009's eq. 15, the weighted second moment
+//! of the evaluated poses, was tried in session 15 and lost perturbed ACES),
+//! which is wide along a direction the scan does not constrain (a
+//! corridor's axis, open space). That Gaussian is fused with
 //! the C/D/T motion model's, linearised at its mean, and the particle's
 //! samples are drawn from the product ([`Proposal::Matched`]). Where too
 //! few endpoints fall near anything the view has seen (a new area, an
@@ -31,7 +34,7 @@
 //! body frame of its mean.
 
 use crate::ancestry::NodeId;
-use crate::config::ScanMatchConfig;
+use crate::config::{FieldWeight, ScanMatchConfig};
 use crate::geometry::{Pose2, pose2, wrap_angle, xyt};
 use crate::motion_model::CdtModel;
 use crate::proposal::{MatchContext, Proposal, ScanRegistration};
@@ -764,10 +767,13 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                         }
                         let e = view.entry(k)?;
                         (e.hits > 0.0).then(|| {
-                            (
-                                [x, y],
-                                1.0 - (-(e.hits as f64 / e.distance as f64) * cell).exp(),
-                            )
+                            let weight = match c.field_weight {
+                                FieldWeight::StopProbability => {
+                                    1.0 - (-(e.hits as f64 / e.distance as f64) * cell).exp()
+                                }
+                                FieldWeight::Hits => 1.0,
+                            };
+                            ([x, y], weight)
                         })
                     })
                     .collect();
@@ -1028,5 +1034,50 @@ mod tests {
         // the motion model's own 2.3 cm, so it lands in between.
         let y = delta.translation.y;
         assert!((-0.1..-0.04).contains(&y), "{delta:?}");
+    }
+
+    #[test]
+    fn walls_seen_head_on_pull_a_stop_probability_match_along_a_corridor() {
+        let m = matcher();
+        // A corridor along x, 2 m wide. The robot passed x = −1…0 before:
+        // walls it saw there head-on have a high stop probability, the rest
+        // (seen at grazing incidence) a low one.
+        let seen_head_on = |x: f64| (-1.0..=0.0).contains(&x);
+        let mut by_stop = Vec::new();
+        let mut by_hits = Vec::new();
+        let mut t = -20.0;
+        while t <= 20.0 {
+            let w = if seen_head_on(t) { 0.9 } else { 0.15 };
+            for y in [0.0, 2.0] {
+                by_stop.push(([t, y], w));
+                by_hits.push(([t, y], 1.0));
+            }
+            t += 1.0 / 35.0;
+        }
+        // Now at x = 1 (it moved 1 m), the scan sees 4 m of each wall,
+        // densest abeam.
+        let points: Vec<[f64; 2]> = (0..60)
+            .map(|k| {
+                let a = -1.3 + 2.6 * (k % 30) as f64 / 29.0;
+                let side = if k < 30 { -1.0 } else { 1.0 };
+                [a.tan().clamp(-2.0, 2.0), side]
+            })
+            .collect();
+        let guess = pose2(1.0, 1.0, 0.0);
+        let mode_x = |walls: &Walls| {
+            let field = m.field([-22.0, -4.0], [22.0, 6.0], walls);
+            let r = m
+                .register(&field, &lut(m.cfg.floor), &points, 180, &guess, None)
+                .unwrap();
+            (r.mode.translation.x, r.info[(0, 0)])
+        };
+        // Weighed by stop probability, the match slides back towards the
+        // walls seen head-on, and says it knows x better.
+        let (x, info_stop) = mode_x(&by_stop);
+        assert!(x < 0.75, "{x}");
+        // Every cell with a hit alike: nothing along the axis to match.
+        let (_, info_hits) = mode_x(&by_hits);
+        assert!(info_hits < 1.0 / (0.5 * 0.5), "{info_hits}");
+        assert!(info_stop > 10.0 * info_hits, "{info_stop} {info_hits}");
     }
 }
