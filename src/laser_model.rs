@@ -90,7 +90,7 @@ impl LaserModel {
         match obs {
             None => 1.0 - (-self.prior_density * len).exp(),
             Some((h, _)) if h <= 0.0 => 0.0,
-            Some((h, d)) => 1.0 - (-(h as f64 / d as f64) * len).exp(),
+            Some((h, d)) => stop_probability(h, d, len),
         }
     }
 
@@ -164,6 +164,14 @@ impl LaserModel {
             acc(k.cell, hit, (k.t_out - k.t_in) as f32);
         }
     }
+}
+
+/// Probability that a beam stops within `len` m of a cell that stopped
+/// `hits` beams over `distance` m of laser path: `1 − exp(−ρ·len)` with
+/// density ρ = hits / distance (stops per metre). The laser model and the
+/// scan matcher's likelihood field both read a cell this way.
+pub fn stop_probability(hits: f32, distance: f32, len: f64) -> f64 {
+    1.0 - (-(hits as f64 / distance as f64) * len).exp()
 }
 
 #[cfg(test)]

@@ -769,7 +769,7 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                         (e.hits > 0.0).then(|| {
                             let weight = match c.field_weight {
                                 FieldWeight::StopProbability => {
-                                    1.0 - (-(e.hits as f64 / e.distance as f64) * cell).exp()
+                                    crate::laser_model::stop_probability(e.hits, e.distance, cell)
                                 }
                                 FieldWeight::Hits => 1.0,
                             };
