@@ -190,13 +190,17 @@ pub struct ScanMatchConfig {
     /// fr079-raw in its one run there (docs/PROPOSAL-2D.md).
     pub prior_in_search: bool,
     /// What a cell with hits weighs in the likelihood field the scan is
-    /// matched against: `"stop-probability"` (the default) or `"hits"`
-    /// ([`FieldWeight`]).
+    /// matched against: `"walls"` (the default), `"stop-probability"` or
+    /// `"hits"` ([`FieldWeight`]).
     pub field_weight: FieldWeight,
+    /// Radius of the neighbourhood a cell's wall test looks at, m
+    /// (`field_weight = "walls"`).
+    pub wall_radius: f64,
 }
 
 /// What a cell with hits weighs in the scan matcher's likelihood field
-/// (`scan_match.field_weight`; measured in docs/PROPOSAL-2D.md, session 15).
+/// (`scan_match.field_weight`; measured in docs/PROPOSAL-2D.md, sessions 15
+/// and 16).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum FieldWeight {
@@ -206,11 +210,20 @@ pub enum FieldWeight {
     /// seen only at grazing incidence, where most beams ran along it before
     /// one stopped: along a corridor that pulls the match back towards the
     /// robot's last poses, where it saw the walls head-on.
-    #[default]
     StopProbability,
     /// 1 for every cell with a hit: no pull along corridors, but what moved
     /// counts as much as what stays.
     Hits,
+    /// 1 for a cell on a wall, its stop probability otherwise: a wall cell
+    /// is one whose hit cells within `scan_match.wall_radius` (any
+    /// particle's) number at least 6 and lie on a thin line (the smaller
+    /// eigenvalue of their spread ≤ 5 % of the larger). A wall seen at
+    /// grazing incidence then weighs as much as one seen head-on, while
+    /// blobs (people, chair legs) and scattered hits keep their stop
+    /// probability. The default: the one setting measured to hold both
+    /// aces-raw and fr079-raw (docs/PROPOSAL-2D.md, session 16).
+    #[default]
+    Walls,
 }
 
 impl Default for ScanMatchConfig {
@@ -234,6 +247,7 @@ impl Default for ScanMatchConfig {
             per_group: false,
             prior_in_search: false,
             field_weight: FieldWeight::default(),
+            wall_radius: 0.15,
         }
     }
 }
@@ -781,6 +795,10 @@ impl Config {
         }
         if l.prior_stop_every.is_nan() || l.prior_stop_every <= 0.0 {
             return bad("laser.prior_stop_every must be positive");
+        }
+        let w = self.scan_match.wall_radius;
+        if !(w.is_finite() && w > 0.0 && w <= 5.0) {
+            return bad("scan_match.wall_radius must be in (0, 5] m");
         }
         let h = &self.hierarchy;
         if h.window == 0 || h.particles == 0 || h.samples_per_particle == 0 {

@@ -6,8 +6,9 @@
 //! ancestry node: they differ only in their own last observation), the
 //! cells that view sees as occupied near the scan are rasterised into a
 //! likelihood field: per field cell, `occ · exp(−d²/2σ²)` of the nearest
-//! occupied cell, `occ = 1 − exp(−ρ·cell)` its stop probability, or 1 for
-//! every cell with a hit (`scan_match.field_weight`, [`FieldWeight`]). Each
+//! occupied cell, `occ = 1 − exp(−ρ·cell)` its stop probability, 1 for
+//! every cell with a hit, or 1 on walls (thin lines of hit cells) and the
+//! stop probability elsewhere (`scan_match.field_weight`, [`FieldWeight`]). Each
 //! particle of the group then registers the scan's endpoints against that
 //! field around its own odometry guess `prev · odometry`, over the whole
 //! window (`±window_xy` m, `±window_theta` rad), in two levels: a coarse
@@ -651,6 +652,79 @@ impl ScanMatcher2d {
     }
 }
 
+/// Hit cells a wall test needs around a cell to call it part of a wall.
+const WALL_MIN_CELLS: f64 = 6.0;
+/// Largest ratio of the smaller to the larger eigenvalue of those cells'
+/// spread for a wall: a thin line (a digitised line gives ≈ 0.01–0.03, a
+/// disc or a blob ≈ 1).
+const WALL_MAX_SPREAD: f64 = 0.05;
+
+/// Per cell of `cells` (distinct grid cells with hits), whether it lies on
+/// a wall: within `radius` cells of it (a disc) lie at least
+/// [`WALL_MIN_CELLS`] of `cells`, and their spread is a thin line
+/// ([`WALL_MAX_SPREAD`]).
+fn wall_cells(cells: &[[i32; 2]], radius: i32) -> Vec<bool> {
+    let Some((lo, hi)) = cells
+        .iter()
+        .fold(None, |b: Option<([i32; 2], [i32; 2])>, k| {
+            Some(match b {
+                None => (*k, *k),
+                Some((lo, hi)) => (
+                    [lo[0].min(k[0]), lo[1].min(k[1])],
+                    [hi[0].max(k[0]), hi[1].max(k[1])],
+                ),
+            })
+        })
+    else {
+        return Vec::new();
+    };
+    let w = (hi[0] - lo[0] + 1) as usize;
+    let h = (hi[1] - lo[1] + 1) as usize;
+    let mut grid = vec![false; w * h];
+    for k in cells {
+        grid[(k[1] - lo[1]) as usize * w + (k[0] - lo[0]) as usize] = true;
+    }
+    let r = radius;
+    cells
+        .par_iter()
+        .map(|k| {
+            let (cx, cy) = (k[0] - lo[0], k[1] - lo[1]);
+            let (mut n, mut sx, mut sy, mut sxx, mut syy, mut sxy) =
+                (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0);
+            for dy in -r..=r {
+                let y = cy + dy;
+                if y < 0 || y >= h as i32 {
+                    continue;
+                }
+                for dx in -r..=r {
+                    let x = cx + dx;
+                    if x < 0 || x >= w as i32 || dx * dx + dy * dy > r * r {
+                        continue;
+                    }
+                    if grid[y as usize * w + x as usize] {
+                        let (fx, fy) = (dx as f64, dy as f64);
+                        n += 1.0;
+                        sx += fx;
+                        sy += fy;
+                        sxx += fx * fx;
+                        syy += fy * fy;
+                        sxy += fx * fy;
+                    }
+                }
+            }
+            if n < WALL_MIN_CELLS {
+                return false;
+            }
+            let (mx, my) = (sx / n, sy / n);
+            let (a, b, d) = (sxx / n - mx * mx, sxy / n - mx * my, syy / n - my * my);
+            let half = 0.5 * (a + d);
+            let disc = (0.25 * (a - d) * (a - d) + b * b).sqrt();
+            let (large, small) = (half + disc, half - disc);
+            large > 0.0 && small <= WALL_MAX_SPREAD * large
+        })
+        .collect()
+}
+
 /// Rotation by `a` of the `[x, y]` block, identity on θ.
 fn rot3(a: f64) -> Matrix3<f64> {
     let (s, c) = a.sin_cos();
@@ -747,6 +821,13 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                 out
             })
             .collect();
+        let walls: Vec<bool> = match c.field_weight {
+            FieldWeight::Walls => {
+                let radius = (c.wall_radius / cell).round().max(1.0) as i32;
+                wall_cells(&hit_cells, radius)
+            }
+            _ => Vec::new(),
+        };
         let floor = c.floor.clamp(1e-6, 1.0);
         let mut lut = [0.0f64; 256];
         for (q, v) in lut.iter_mut().enumerate() {
@@ -759,7 +840,8 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                 let mut view = ctx.map.view(ctx.numbering, ctx.particles[m[0]].node);
                 let occupied: Vec<([f64; 2], f64)> = hit_cells
                     .iter()
-                    .filter_map(|&k| {
+                    .enumerate()
+                    .filter_map(|(at, &k)| {
                         let x = (k[0] as f64 + 0.5) * cell;
                         let y = (k[1] as f64 + 0.5) * cell;
                         if x < lo[0] || x > hi[0] || y < lo[1] || y > hi[1] {
@@ -767,11 +849,13 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                         }
                         let e = view.entry(k)?;
                         (e.hits > 0.0).then(|| {
+                            let stop =
+                                || crate::laser_model::stop_probability(e.hits, e.distance, cell);
                             let weight = match c.field_weight {
-                                FieldWeight::StopProbability => {
-                                    crate::laser_model::stop_probability(e.hits, e.distance, cell)
-                                }
+                                FieldWeight::StopProbability => stop(),
                                 FieldWeight::Hits => 1.0,
+                                FieldWeight::Walls if walls[at] => 1.0,
+                                FieldWeight::Walls => stop(),
                             };
                             ([x, y], weight)
                         })
@@ -1034,6 +1118,48 @@ mod tests {
         // the motion model's own 2.3 cm, so it lands in between.
         let y = delta.translation.y;
         assert!((-0.1..-0.04).contains(&y), "{delta:?}");
+    }
+
+    #[test]
+    fn lines_of_hit_cells_are_walls_and_blobs_are_not() {
+        // A wall along x, one along a 30° diagonal (digitised), a 4 × 4
+        // blob, a ring of radius 4 cells (a person's outline) and a lone
+        // cell, far enough apart not to see each other.
+        let mut cells: Vec<[i32; 2]> = (0..30).map(|x| [x, 0]).collect();
+        let diagonal: Vec<[i32; 2]> = (0..30)
+            .map(|x| {
+                [
+                    x,
+                    100 + (x as f64 * 30f64.to_radians().tan()).round() as i32,
+                ]
+            })
+            .collect();
+        cells.extend(&diagonal);
+        let blob: Vec<[i32; 2]> = (0..16).map(|i| [200 + i % 4, 200 + i / 4]).collect();
+        cells.extend(&blob);
+        let mut ring: Vec<[i32; 2]> = (0..64)
+            .map(|i| {
+                let a = i as f64 / 64.0 * std::f64::consts::TAU;
+                [
+                    300 + (4.0 * a.cos()).round() as i32,
+                    300 + (4.0 * a.sin()).round() as i32,
+                ]
+            })
+            .collect();
+        ring.sort();
+        ring.dedup();
+        cells.extend(&ring);
+        cells.push([400, 400]);
+        let walls = wall_cells(&cells, 5);
+        assert_eq!(walls.len(), cells.len());
+        let of = |k: [i32; 2]| walls[cells.iter().position(|c| *c == k).unwrap()];
+        assert!((0..30).all(|x| of([x, 0])), "straight wall");
+        // (its end cells see fewer than 6 cells within the radius)
+        assert!(diagonal[2..28].iter().all(|&k| of(k)), "diagonal wall");
+        assert!(blob.iter().all(|&k| !of(k)), "blob");
+        assert!(ring.iter().all(|&k| !of(k)), "ring");
+        assert!(!of([400, 400]), "lone cell");
+        assert!(wall_cells(&[], 5).is_empty());
     }
 
     #[test]
