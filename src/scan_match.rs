@@ -655,7 +655,7 @@ impl ScanMatcher2d {
 /// Hit cells a wall test needs around a cell to call it part of a wall.
 const WALL_MIN_CELLS: f64 = 6.0;
 /// Largest ratio of the smaller to the larger eigenvalue of those cells'
-/// spread for a wall: a thin line (a digitised line gives ≈ 0.01–0.03, a
+/// spread for a wall: a thin line (a digitised line gives ≈ 0.005–0.02, a
 /// disc or a blob ≈ 1).
 const WALL_MAX_SPREAD: f64 = 0.05;
 
