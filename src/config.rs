@@ -214,14 +214,16 @@ pub enum FieldWeight {
     /// 1 for every cell with a hit: no pull along corridors, but what moved
     /// counts as much as what stays.
     Hits,
-    /// 1 for a cell on a wall, its stop probability otherwise: a wall cell
+    /// 1 for a cell on a wall, its stop probability otherwise: a line cell
     /// is one whose hit cells within `scan_match.wall_radius` (any
     /// particle's) number at least 6 and lie on a thin line (the smaller
-    /// eigenvalue of their spread ≤ 5 % of the larger). A wall seen at
-    /// grazing incidence then weighs as much as one seen head-on, while
-    /// blobs (people, chair legs) and scattered hits keep their stop
+    /// eigenvalue of their spread ≤ 5 % of the larger), and a wall cell is
+    /// any hit cell within `wall_radius` of a line cell (so corners, wall
+    /// ends and door frames count). A wall seen at grazing incidence then
+    /// weighs as much as one seen head-on, while blobs away from walls
+    /// (people, chair legs) and scattered hits keep their stop
     /// probability. The default: the one setting measured to hold both
-    /// aces-raw and fr079-raw (docs/PROPOSAL-2D.md, session 16).
+    /// aces-raw and fr079-raw (docs/PROPOSAL-2D.md, sessions 16 and 17).
     #[default]
     Walls,
 }
@@ -256,11 +258,14 @@ impl Default for ScanMatchConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum ProposalKind {
-    /// The motion model around the odometry (the release).
-    #[default]
+    /// The motion model around the odometry (the release), kept for
+    /// comparison: it wins where the odometry's noise is the release's
+    /// model (the simulator), and loses robots whose odometry slips.
     Motion,
     /// Each particle's scan match against its own map view, fused with the
-    /// motion model (`[scan_match]`).
+    /// motion model (`[scan_match]`). The default: the proposal that won
+    /// over the suite (docs/PROPOSAL-2D.md, session 17).
+    #[default]
     ScanMatched,
 }
 
