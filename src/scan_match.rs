@@ -680,36 +680,39 @@ fn wall_cells(cells: &[[i32; 2]], radius: i32) -> Vec<bool> {
     };
     let w = (hi[0] - lo[0] + 1) as usize;
     let h = (hi[1] - lo[1] + 1) as usize;
+    let index = |k: &[i32; 2]| (k[1] - lo[1]) as usize * w + (k[0] - lo[0]) as usize;
+    let r = radius;
+    // Offsets and grid indices of the disc of radius `r` around `k`,
+    // clipped to the box.
+    let disc = move |k: &[i32; 2]| {
+        let (cx, cy) = (k[0] - lo[0], k[1] - lo[1]);
+        (-r..=r).flat_map(move |dy| {
+            (-r..=r).filter_map(move |dx| {
+                let (x, y) = (cx + dx, cy + dy);
+                let inside = x >= 0 && x < w as i32 && y >= 0 && y < h as i32;
+                (inside && dx * dx + dy * dy <= r * r)
+                    .then(|| (dx, dy, y as usize * w + x as usize))
+            })
+        })
+    };
     let mut grid = vec![false; w * h];
     for k in cells {
-        grid[(k[1] - lo[1]) as usize * w + (k[0] - lo[0]) as usize] = true;
+        grid[index(k)] = true;
     }
-    let r = radius;
     let line: Vec<bool> = cells
         .par_iter()
         .map(|k| {
-            let (cx, cy) = (k[0] - lo[0], k[1] - lo[1]);
             let (mut n, mut sx, mut sy, mut sxx, mut syy, mut sxy) =
                 (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0);
-            for dy in -r..=r {
-                let y = cy + dy;
-                if y < 0 || y >= h as i32 {
-                    continue;
-                }
-                for dx in -r..=r {
-                    let x = cx + dx;
-                    if x < 0 || x >= w as i32 || dx * dx + dy * dy > r * r {
-                        continue;
-                    }
-                    if grid[y as usize * w + x as usize] {
-                        let (fx, fy) = (dx as f64, dy as f64);
-                        n += 1.0;
-                        sx += fx;
-                        sy += fy;
-                        sxx += fx * fx;
-                        syy += fy * fy;
-                        sxy += fx * fy;
-                    }
+            for (dx, dy, at) in disc(k) {
+                if grid[at] {
+                    let (fx, fy) = (dx as f64, dy as f64);
+                    n += 1.0;
+                    sx += fx;
+                    sy += fy;
+                    sxx += fx * fx;
+                    syy += fy * fy;
+                    sxy += fx * fy;
                 }
             }
             if n < WALL_MIN_CELLS {
@@ -728,32 +731,12 @@ fn wall_cells(cells: &[[i32; 2]], radius: i32) -> Vec<bool> {
     // them like the wall they end keeps that hold (sim2d ATE 0.092 → 0.056
     // m, docs/PROPOSAL-2D.md, session 17).
     let mut on = vec![false; w * h];
-    for (k, &l) in cells.iter().zip(&line) {
-        if l {
-            on[(k[1] - lo[1]) as usize * w + (k[0] - lo[0]) as usize] = true;
-        }
+    for (k, _) in cells.iter().zip(&line).filter(|(_, l)| **l) {
+        on[index(k)] = true;
     }
     cells
         .par_iter()
-        .map(|k| {
-            let (cx, cy) = (k[0] - lo[0], k[1] - lo[1]);
-            for dy in -r..=r {
-                let y = cy + dy;
-                if y < 0 || y >= h as i32 {
-                    continue;
-                }
-                for dx in -r..=r {
-                    let x = cx + dx;
-                    if x < 0 || x >= w as i32 || dx * dx + dy * dy > r * r {
-                        continue;
-                    }
-                    if on[y as usize * w + x as usize] {
-                        return true;
-                    }
-                }
-            }
-            false
-        })
+        .map(|k| disc(k).any(|(_, _, at)| on[at]))
         .collect()
 }
 
