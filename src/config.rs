@@ -196,6 +196,13 @@ pub struct ScanMatchConfig {
     /// Radius of the neighbourhood a cell's wall test looks at, m
     /// (`field_weight = "walls"`).
     pub wall_radius: f64,
+    /// Share of a particle's samples drawn around the peak nearest its
+    /// odometry guess (a hill-climb from the guess, no search) where that
+    /// peak lies outside 3 σ of the searched best one: the proposal is then
+    /// the two-component mixture and the importance weights (DP likelihood
+    /// × motion prior / mixture density) decide between the peaks, not the
+    /// matcher's score alone. 0 = off (the searched peak only).
+    pub odometry_peak_share: f64,
 }
 
 /// What a cell with hits weighs in the scan matcher's likelihood field
@@ -250,6 +257,7 @@ impl Default for ScanMatchConfig {
             prior_in_search: false,
             field_weight: FieldWeight::default(),
             wall_radius: 0.15,
+            odometry_peak_share: 0.0,
         }
     }
 }

@@ -460,7 +460,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         let of = |i: usize| per_particle.as_ref().map_or(proposal, |v| &v[i]);
         // Samples of particle `i`: fewer where its own match is sharp.
         let count = |q: &Proposal<P>| match q {
-            Proposal::Matched { .. } if per_particle.is_some() && self.matched_samples > 0 => {
+            q if q.is_matched() && per_particle.is_some() && self.matched_samples > 0 => {
                 self.matched_samples
             }
             _ => k,
@@ -489,12 +489,8 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             })
             .collect();
         let matched = per_particle.as_ref().map_or(
-            usize::from(matches!(proposal, Proposal::Matched { .. })) * self.particles.len(),
-            |v| {
-                v.iter()
-                    .filter(|q| matches!(q, Proposal::Matched { .. }))
-                    .count()
-            },
+            usize::from(proposal.is_matched()) * self.particles.len(),
+            |v| v.iter().filter(|q| q.is_matched()).count(),
         );
         let (samples, log_ratio): (Vec<_>, Vec<_>) = drawn.into_iter().unzip();
         Prediction {

@@ -45,6 +45,12 @@ pub enum Proposal<P> {
         /// `[ω rad, t m]`).
         factor: DMatrix<f64>,
     },
+    /// Two or more matched Gaussians, each drawn with its probability
+    /// (`(probability, delta, factor)`, probabilities summing to 1): a scan
+    /// match whose window holds more than one plausible peak, so that the
+    /// importance weights, not the matcher, decide between them. The density
+    /// is the mixture's.
+    Mixture(Vec<(f64, P, DMatrix<f64>)>),
     /// Per particle, a scan match against that particle's own map view,
     /// fused with the motion model (the filter's [`ScanRegistration`]; a
     /// filter without one samples the motion model).
@@ -104,13 +110,55 @@ impl<P> Proposal<P> {
     {
         match self {
             Proposal::Motion | Proposal::ScanMatched => motion.sample(prev, odometry, rng),
-            Proposal::Matched { delta, factor } => {
-                let n = DVector::from_fn(P::DOF, |_, _| StandardNormal.sample(&mut *rng));
-                let xi = factor * n;
-                prev.perturbed(delta, xi.as_slice())
+            Proposal::Matched { delta, factor } => gaussian_sample(prev, delta, factor, rng),
+            Proposal::Mixture(parts) => {
+                let u: f64 = rand::RngExt::random(&mut *rng);
+                let mut acc = 0.0f64;
+                let (_, delta, factor) = parts
+                    .iter()
+                    .find(|c| {
+                        acc += c.0;
+                        u < acc
+                    })
+                    .or(parts.last())
+                    .expect("a mixture has components");
+                gaussian_sample(prev, delta, factor, rng)
             }
         }
     }
+
+    /// Whether samples come from a scan match ([`Proposal::Matched`] or
+    /// [`Proposal::Mixture`]).
+    pub fn is_matched(&self) -> bool {
+        matches!(self, Proposal::Matched { .. } | Proposal::Mixture(_))
+    }
+}
+
+/// `prev · delta · ε(L n)` with n standard normal.
+fn gaussian_sample<const D: usize, P: Pose<D>>(
+    prev: &P,
+    delta: &P,
+    factor: &DMatrix<f64>,
+    rng: &mut Pcg64,
+) -> P {
+    let n = DVector::from_fn(P::DOF, |_, _| StandardNormal.sample(&mut *rng));
+    let xi = factor * n;
+    prev.perturbed(delta, xi.as_slice())
+}
+
+/// Log density of `sample` under `prev · delta · ε(ξ)`, ξ ~ N(0, L Lᵀ), in
+/// the body-frame coordinates of [`Pose::perturbation_to`].
+fn gaussian_log_density<const D: usize, P: Pose<D>>(
+    prev: &P,
+    delta: &P,
+    factor: &DMatrix<f64>,
+    sample: &P,
+) -> Option<f64> {
+    let mean = prev.compose(delta);
+    let xi = DVector::from_vec(mean.perturbation_to(sample));
+    let z = factor.solve_lower_triangular(&xi)?;
+    let log_det: f64 = (0..P::DOF).map(|i| factor[(i, i)].ln()).sum();
+    Some(-0.5 * z.norm_squared() - log_det - 0.5 * P::DOF as f64 * std::f64::consts::TAU.ln())
 }
 
 impl<P> Proposal<P> {
@@ -125,15 +173,17 @@ impl<P> Proposal<P> {
         match self {
             Proposal::Motion | Proposal::ScanMatched => None,
             Proposal::Matched { delta, factor } => {
-                let mean = prev.compose(delta);
-                let xi = DVector::from_vec(mean.perturbation_to(sample));
-                let z = factor.solve_lower_triangular(&xi)?;
-                let log_det: f64 = (0..P::DOF).map(|i| factor[(i, i)].ln()).sum();
-                Some(
-                    -0.5 * z.norm_squared()
-                        - log_det
-                        - 0.5 * P::DOF as f64 * std::f64::consts::TAU.ln(),
-                )
+                gaussian_log_density(prev, delta, factor, sample)
+            }
+            Proposal::Mixture(parts) => {
+                let logs: Vec<f64> = parts
+                    .iter()
+                    .map(|(w, delta, factor)| {
+                        Some(w.ln() + gaussian_log_density(prev, delta, factor, sample)?)
+                    })
+                    .collect::<Option<_>>()?;
+                let top = logs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                Some(top + logs.iter().map(|l| (l - top).exp()).sum::<f64>().ln())
             }
         }
     }
@@ -192,6 +242,48 @@ mod tests {
             let got = (sq[k] / n as f64).sqrt();
             assert!((got - sd[k]).abs() < 0.05 * sd[k], "{k}: {got}");
         }
+    }
+
+    #[test]
+    fn a_mixture_draws_each_part_by_its_probability_and_has_the_mixture_density() {
+        let prev = pose2(1.0, 2.0, 0.4);
+        let cov = DMatrix::from_diagonal(&DVector::from_vec(vec![1e-4, 1e-4, 1e-5]));
+        let a = Proposal::matched(pose2(0.5, 0.0, 0.0), cov.clone()).unwrap();
+        let b = Proposal::matched(pose2(0.8, 0.1, 0.2), cov.clone()).unwrap();
+        let factor = cov.cholesky().unwrap().l();
+        let mix = Proposal::Mixture(vec![
+            (0.75, pose2(0.5, 0.0, 0.0), factor.clone()),
+            (0.25, pose2(0.8, 0.1, 0.2), factor),
+        ]);
+        let mut rng = Pcg64::seed_from_u64(3);
+        let n = 20000;
+        let near_b = (0..n)
+            .filter(|_| {
+                let p: Pose2 = mix.sample::<2>(&Exact, &prev, &pose2(0.0, 0.0, 0.0), &mut rng);
+                let e = (prev * pose2(0.8, 0.1, 0.2)).inverse() * p;
+                e.translation.vector.norm() < 0.1
+            })
+            .count();
+        let share = near_b as f64 / n as f64;
+        assert!((share - 0.25).abs() < 0.015, "{share}");
+        // Between the two means, the density is the weighted sum of both.
+        for s in [
+            pose2(0.5, 0.0, 0.0),
+            pose2(0.6, 0.02, 0.05),
+            pose2(0.8, 0.1, 0.2),
+        ] {
+            let at = prev * s;
+            let pa = a.log_density::<2>(&prev, &at).unwrap().exp();
+            let pb = b.log_density::<2>(&prev, &at).unwrap().exp();
+            let pm = mix.log_density::<2>(&prev, &at).unwrap();
+            let want = (0.75 * pa + 0.25 * pb).ln();
+            assert!(
+                (pm - want).abs() < 1e-9 * want.abs().max(1.0),
+                "{pm} {want}"
+            );
+        }
+        assert!(mix.is_matched() && a.is_matched());
+        assert!(!Proposal::<Pose2>::Motion.is_matched());
     }
 
     #[test]

@@ -316,12 +316,7 @@ impl ScanMatcher2d {
             return None;
         }
         let c = &self.cfg;
-        // The field's score is a sum over `points.len()` endpoints of a
-        // σ-wide field; the samples are weighed by `beams` ranges of the DP
-        // model's σ_DP: this scales the score (and its curvature) to that
-        // likelihood's, then by 1 / temperature.
-        let scale = (beams as f64 / points.len() as f64) * (c.sigma * c.sigma / self.variance)
-            / c.temperature.max(1e-6);
+        let (scale, mean_range, fine_dt) = self.scales(field, points, beams);
         // What candidates are ranked by: the score, or with a prior the
         // log posterior up to a constant (both in the DP likelihood's nats).
         let rank = |score: f64, x: f64, y: f64, t: f64| match prior {
@@ -332,13 +327,6 @@ impl ScanMatcher2d {
         let f = field.f;
         let big = f as f64 * res;
         let (gx, gy, gt) = xyt(guess);
-        let mean_range = points
-            .iter()
-            .map(|p| (p[0] * p[0] + p[1] * p[1]).sqrt())
-            .sum::<f64>()
-            / points.len() as f64;
-        // A fine angle step moves the mean endpoint by about one fine cell.
-        let fine_dt = (res / mean_range.clamp(1.0, 30.0)).clamp(1e-3, 5e-3);
         let coarse_dt = f as f64 * fine_dt;
         let na = (c.window_theta / coarse_dt).ceil() as i64;
         let nt = (2.0 * c.window_xy / big).ceil() as usize + 1;
@@ -462,19 +450,82 @@ impl ScanMatcher2d {
                 }
             })?
             .0;
-        // Sub-cell refinement: hill-climb on the interpolated field from
-        // the best grid pose, halving the steps (GMapping's matcher).
-        let floor = c.floor.clamp(1e-6, 1.0);
-        let score = |q: [f64; 3]| field.smooth_score(points, floor, q);
-        let mut cur = [
-            gx + best.dx + 0.5 * res,
-            gy + best.dy + 0.5 * res,
-            gt + best.dt,
-        ];
         // The grid pose put endpoints in cells; the interpolated field's
         // centres are half a cell on: start from both, keep the better.
-        let alt = [gx + best.dx, gy + best.dy, gt + best.dt];
+        let starts = [
+            [
+                gx + best.dx + 0.5 * res,
+                gy + best.dy + 0.5 * res,
+                gt + best.dt,
+            ],
+            [gx + best.dx, gy + best.dy, gt + best.dt],
+        ];
+        Some(self.peak(field, points, starts, fine_dt, mean_range, scale))
+    }
+
+    /// For `points` (robot frame, m; a thinning of `beams` returns) on
+    /// `field`: the factor from the field's score to the DP likelihood's
+    /// nats, the endpoints' mean range (m) and the finest heading step
+    /// (rad).
+    fn scales(&self, field: &Field, points: &[[f64; 2]], beams: usize) -> (f64, f64, f64) {
+        let c = &self.cfg;
+        // The field's score is a sum over `points.len()` endpoints of a
+        // σ-wide field; the samples are weighed by `beams` ranges of the DP
+        // model's σ_DP: this scales the score (and its curvature) to that
+        // likelihood's, then by 1 / temperature.
+        let scale = (beams as f64 / points.len() as f64) * (c.sigma * c.sigma / self.variance)
+            / c.temperature.max(1e-6);
+        let mean_range = points
+            .iter()
+            .map(|p| (p[0] * p[0] + p[1] * p[1]).sqrt())
+            .sum::<f64>()
+            / points.len() as f64;
+        // A fine angle step moves the mean endpoint by about one fine cell.
+        let fine_dt = (field.res / mean_range.clamp(1.0, 30.0)).clamp(1e-3, 5e-3);
+        (scale, mean_range, fine_dt)
+    }
+
+    /// The peak nearest `guess` (map frame): the hill-climb of
+    /// [`ScanMatcher2d::peak`] started at the guess itself, no search;
+    /// `None` without endpoints.
+    fn climb(
+        &self,
+        field: &Field,
+        points: &[[f64; 2]],
+        beams: usize,
+        guess: &Pose2,
+    ) -> Option<Match> {
+        if points.is_empty() {
+            return None;
+        }
+        let (scale, mean_range, fine_dt) = self.scales(field, points, beams);
+        let (x, y, t) = xyt(guess);
+        let g = [x, y, t];
+        Some(self.peak(field, points, [g, g], fine_dt, mean_range, scale))
+    }
+
+    /// The peak of the smooth score of `points` on `field` climbed from the
+    /// better of `starts` (map-frame `[x, y, θ]`): a sub-cell hill-climb
+    /// on the interpolated field, halving the steps (GMapping's matcher;
+    /// the first heading step is half of `fine_dt`), then the curvature
+    /// there, scaled by `scale` to the DP likelihood (`mean_range`, m, sets
+    /// the heading stencil).
+    fn peak(
+        &self,
+        field: &Field,
+        points: &[[f64; 2]],
+        starts: [[f64; 3]; 2],
+        fine_dt: f64,
+        mean_range: f64,
+        scale: f64,
+    ) -> Match {
+        let c = &self.cfg;
+        let res = field.res;
+        let floor = c.floor.clamp(1e-6, 1.0);
+        let score = |q: [f64; 3]| field.smooth_score(points, floor, q);
+        let mut cur = starts[0];
         let mut cur_s = score(cur);
+        let alt = starts[1];
         let alt_s = score(alt);
         if alt_s > cur_s {
             (cur, cur_s) = (alt, alt_s);
@@ -578,11 +629,10 @@ impl ScanMatcher2d {
                 let q = [cur[0] + d[0], cur[1] + d[1], cur[2] + d[2]];
                 let sq = score(q);
                 if sq > cur_s {
-                    (cur, cur_s) = (q, sq);
+                    cur = q;
                 }
             }
         }
-        let _ = cur_s;
         let mode = pose2(cur[0], cur[1], cur[2]);
         // Overlap at the mode: endpoints on a field cell above zero.
         let (s, co) = cur[2].sin_cos();
@@ -612,11 +662,11 @@ impl ScanMatcher2d {
         });
         let info =
             eig.eigenvectors * Matrix3::from_diagonal(&lambda) * eig.eigenvectors.transpose();
-        Some(Match {
+        Match {
             mode,
             info,
             overlap: hits as f64 / points.len() as f64,
-        })
+        }
     }
 
     /// The fused proposal of a particle at `prev` whose scan matched at
@@ -649,6 +699,41 @@ impl ScanMatcher2d {
             pose2(mu[0], mu[1], mu[2]),
             DMatrix::from_column_slice(3, 3, body.as_slice()),
         )
+    }
+}
+
+impl ScanMatcher2d {
+    /// The searched peak's proposal `best` of a particle at `prev`, joined
+    /// by `near` (the peak nearest the odometry guess) with probability
+    /// `odometry_peak_share` where `near`'s mean lies outside 3 σ of
+    /// `best`'s; else `best` alone.
+    fn mix(&self, prev: &Pose2, best: Proposal<Pose2>, near: Proposal<Pose2>) -> Proposal<Pose2> {
+        let (
+            Proposal::Matched {
+                delta: db,
+                factor: lb,
+            },
+            Proposal::Matched {
+                delta: dn,
+                factor: ln,
+            },
+        ) = (&best, &near)
+        else {
+            return best;
+        };
+        use crate::geometry::Pose;
+        let xi = nalgebra::DVector::from_vec((prev * db).perturbation_to(&(prev * dn)));
+        let apart = lb
+            .solve_lower_triangular(&xi)
+            .is_some_and(|z| z.norm_squared() > 9.0);
+        if !apart {
+            return best;
+        }
+        let share = self.cfg.odometry_peak_share.min(1.0);
+        Proposal::Mixture(vec![
+            (1.0 - share, *db, lb.clone()),
+            (share, *dn, ln.clone()),
+        ])
     }
 }
 
@@ -740,6 +825,15 @@ fn wall_cells(cells: &[[i32; 2]], radius: i32) -> Vec<bool> {
         .collect()
 }
 
+/// How the particle groups of one step see a map cell.
+#[derive(Clone, Copy)]
+enum Seen {
+    /// Every group sees this entry (`None`: no entry with a hit).
+    Alike(Option<crate::dpmap::Entry>),
+    /// The groups' lineages wrote it differently: resolve per view.
+    Varying,
+}
+
 /// Rotation by `a` of the `[x, y]` block, identity on θ.
 fn rot3(a: f64) -> Matrix3<f64> {
     let (s, c) = a.sin_cos();
@@ -811,7 +905,12 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
             })
             .collect();
         // Cells anyone has seen a hit in, once for all groups, in storage
-        // order (each group then resolves only these through its view).
+        // order. A cell whose list holds only observations every group
+        // inherits (from a common ancestor) or none inherits looks the same
+        // through every view: it is resolved here, once. Only cells written
+        // since the groups' lineages split (about what the robot sees now)
+        // are resolved through each group's view: on a large map that is a
+        // few per cent of the cells in reach.
         let cell = self.cell;
         let lo = boxes.iter().fold([f64::INFINITY; 2], |a, b| {
             [a[0].min(b.0[0]), a[1].min(b.0[1])]
@@ -819,17 +918,53 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
         let hi = boxes.iter().fold([f64::NEG_INFINITY; 2], |a, b| {
             [a[0].max(b.1[0]), a[1].max(b.1[1])]
         });
+        let leaves: Vec<NodeId> = members.iter().map(|m| ctx.particles[m[0]].node).collect();
+        let (enter, exit) = (&ctx.numbering.enter, &ctx.numbering.exit);
+        // Every leaf's pre-order index lies in [first, last]: a node whose
+        // subtree holds both holds them all.
+        let (first, last) = leaves.iter().fold((u32::MAX, 0), |(a, b), &n| {
+            (a.min(enter[n as usize]), b.max(enter[n as usize]))
+        });
+        let seen_alike = |list: &[crate::dpmap::Entry]| -> Option<Option<crate::dpmap::Entry>> {
+            let mut best: Option<(u32, crate::dpmap::Entry)> = None;
+            for e in list {
+                let (en, ex) = (enter[e.node as usize], exit[e.node as usize]);
+                if en <= first && last <= ex {
+                    if best.is_none_or(|b| en > b.0) {
+                        best = Some((en, *e));
+                    }
+                } else if !(ex < first || en > last) {
+                    // An ancestor of some leaves, not all.
+                    return None;
+                }
+            }
+            Some(best.map(|b| b.1))
+        };
+        let weight_of = |e: &crate::dpmap::Entry, wall: bool| {
+            let stop = || crate::laser_model::stop_probability(e.hits, e.distance, cell);
+            match c.field_weight {
+                FieldWeight::StopProbability => stop(),
+                FieldWeight::Hits => 1.0,
+                FieldWeight::Walls if wall => 1.0,
+                FieldWeight::Walls => stop(),
+            }
+        };
         let bits = crate::dpmap::DpMap::<2>::brick_bits();
         let brick = |x: f64| ((x / cell).floor() as i32) >> bits;
         let (bx0, bx1, by0, by1) = (brick(lo[0]), brick(hi[0]), brick(lo[1]), brick(hi[1]));
-        let hit_cells: Vec<[i32; 2]> = (by0..=by1)
+        let hit_cells: Vec<([i32; 2], Seen)> = (by0..=by1)
             .into_par_iter()
             .flat_map_iter(|by| {
                 let mut out = Vec::new();
                 for bx in bx0..=bx1 {
                     ctx.map.for_each_cell_in_brick([bx, by], |k, list| {
                         if list.iter().any(|e| e.hits > 0.0) {
-                            out.push(k);
+                            let seen = match seen_alike(list) {
+                                Some(Some(e)) if e.hits > 0.0 => Seen::Alike(Some(e)),
+                                Some(_) => Seen::Alike(None),
+                                None => Seen::Varying,
+                            };
+                            out.push((k, seen));
                         }
                     });
                 }
@@ -839,10 +974,20 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
         let walls: Vec<bool> = match c.field_weight {
             FieldWeight::Walls => {
                 let radius = (c.wall_radius / cell).round().max(1.0) as i32;
-                wall_cells(&hit_cells, radius)
+                let keys: Vec<[i32; 2]> = hit_cells.iter().map(|h| h.0).collect();
+                wall_cells(&keys, radius)
             }
             _ => Vec::new(),
         };
+        // Field weights of the cells every view sees alike, once.
+        let alike: Vec<Option<f64>> = hit_cells
+            .iter()
+            .enumerate()
+            .map(|(at, (_, seen))| match seen {
+                Seen::Alike(Some(e)) => Some(weight_of(e, walls.get(at) == Some(&true))),
+                _ => None,
+            })
+            .collect();
         let floor = c.floor.clamp(1e-6, 1.0);
         let mut lut = [0.0f64; 256];
         for (q, v) in lut.iter_mut().enumerate() {
@@ -856,24 +1001,23 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                 let occupied: Vec<([f64; 2], f64)> = hit_cells
                     .iter()
                     .enumerate()
-                    .filter_map(|(at, &k)| {
+                    .filter_map(|(at, &(k, seen))| {
                         let x = (k[0] as f64 + 0.5) * cell;
                         let y = (k[1] as f64 + 0.5) * cell;
                         if x < lo[0] || x > hi[0] || y < lo[1] || y > hi[1] {
                             return None;
                         }
-                        let e = view.entry(k)?;
-                        (e.hits > 0.0).then(|| {
-                            let stop =
-                                || crate::laser_model::stop_probability(e.hits, e.distance, cell);
-                            let weight = match c.field_weight {
-                                FieldWeight::StopProbability => stop(),
-                                FieldWeight::Hits => 1.0,
-                                FieldWeight::Walls if walls[at] => 1.0,
-                                FieldWeight::Walls => stop(),
-                            };
-                            ([x, y], weight)
-                        })
+                        let weight = match seen {
+                            Seen::Alike(_) => alike[at]?,
+                            Seen::Varying => {
+                                let e = view.entry(k)?;
+                                if e.hits <= 0.0 {
+                                    return None;
+                                }
+                                weight_of(&e, walls.get(at) == Some(&true))
+                            }
+                        };
+                        Some(([x, y], weight))
                     })
                     .collect();
                 let field = self.field(lo, hi, &occupied);
@@ -911,6 +1055,19 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                                 own().and_then(|r| self.fuse(prev, ctx.odometry, &r.mode, &r.info))
                             }
                         }
+                        .map(|q| {
+                            if c.odometry_peak_share <= 0.0 {
+                                return q;
+                            }
+                            let near = self
+                                .climb(&field, &points, beams, &guesses[i])
+                                .filter(|r| r.overlap >= c.min_overlap)
+                                .and_then(|r| self.fuse(prev, ctx.odometry, &r.mode, &r.info));
+                            match near {
+                                Some(near) => self.mix(prev, q, near),
+                                None => q,
+                            }
+                        })
                         .unwrap_or(Proposal::Motion);
                         (i, q)
                     })
@@ -1030,6 +1187,53 @@ mod tests {
             "{cov}"
         );
         assert!(cov[(2, 2)].sqrt() < 0.015, "{cov}");
+    }
+
+    /// The room's walls, faint, where the odometry puts the robot, and a
+    /// strong copy 0.3 m on: the search takes the copy, the climb from
+    /// the guess stays on the faint room, and with `odometry_peak_share`
+    /// the proposal draws that share of its samples there.
+    #[test]
+    fn a_peak_near_the_odometry_joins_a_far_better_one_in_a_mixture() {
+        let mut m = matcher();
+        m.cfg.odometry_peak_share = 0.25;
+        let truth = pose2(2.5, 1.8, 0.0);
+        let (walls, points) = room(&truth);
+        let mut both: Walls = walls.iter().map(|&(p, _)| (p, 0.45)).collect();
+        both.extend(walls.iter().map(|&(p, _)| ([p[0] + 0.3, p[1]], 0.9)));
+        let field = m.field([-2.0, -2.0], [8.0, 6.0], &both);
+        let odometry = pose2(0.5, 0.0, 0.0);
+        let prev = truth * odometry.inverse();
+        let lut = lut(m.cfg.floor);
+        let far = m
+            .register(&field, &lut, &points, points.len(), &truth, None)
+            .unwrap();
+        let near = m.climb(&field, &points, points.len(), &truth).unwrap();
+        assert!(
+            (far.mode.translation.x - 2.8).abs() < 0.03,
+            "{:?}",
+            far.mode
+        );
+        assert!(
+            (near.mode.translation.x - 2.5).abs() < 0.03,
+            "{:?}",
+            near.mode
+        );
+        let fused = |r: &Match| m.fuse(&prev, &odometry, &r.mode, &r.info).unwrap();
+        let Proposal::Mixture(parts) = m.mix(&prev, fused(&far), fused(&near)) else {
+            panic!("two peaks 0.3 m apart make a mixture");
+        };
+        assert_eq!(parts.len(), 2);
+        assert_eq!((parts[0].0, parts[1].0), (0.75, 0.25));
+        for (part, x) in parts.iter().zip([2.8, 2.5]) {
+            let mean = prev * part.1;
+            assert!((mean.translation.x - x).abs() < 0.03, "{mean:?}");
+        }
+        // A peak inside the best one's spread adds nothing.
+        assert!(matches!(
+            m.mix(&prev, fused(&far), fused(&far)),
+            Proposal::Matched { .. }
+        ));
     }
 
     /// A corridor whose walls carry posts every 0.5 m: two poses 0.5 m
