@@ -146,6 +146,21 @@ fn gaussian_sample<const D: usize, P: Pose<D>>(
     prev.perturbed(delta, xi.as_slice())
 }
 
+/// The offset ξ of `sample` from `prev · delta` in the body-frame
+/// coordinates of [`Pose::perturbation_to`], whitened by the lower
+/// Cholesky factor L: `L⁻¹ ξ` (its squared norm is the Mahalanobis
+/// distance under N(0, L Lᵀ)); `None` if L is singular.
+pub(crate) fn whitened<const D: usize, P: Pose<D>>(
+    prev: &P,
+    delta: &P,
+    factor: &DMatrix<f64>,
+    sample: &P,
+) -> Option<DVector<f64>> {
+    let mean = prev.compose(delta);
+    let xi = DVector::from_vec(mean.perturbation_to(sample));
+    factor.solve_lower_triangular(&xi)
+}
+
 /// Log density of `sample` under `prev · delta · ε(ξ)`, ξ ~ N(0, L Lᵀ), in
 /// the body-frame coordinates of [`Pose::perturbation_to`].
 fn gaussian_log_density<const D: usize, P: Pose<D>>(
@@ -154,9 +169,7 @@ fn gaussian_log_density<const D: usize, P: Pose<D>>(
     factor: &DMatrix<f64>,
     sample: &P,
 ) -> Option<f64> {
-    let mean = prev.compose(delta);
-    let xi = DVector::from_vec(mean.perturbation_to(sample));
-    let z = factor.solve_lower_triangular(&xi)?;
+    let z = whitened(prev, delta, factor, sample)?;
     let log_det: f64 = (0..P::DOF).map(|i| factor[(i, i)].ln()).sum();
     Some(-0.5 * z.norm_squared() - log_det - 0.5 * P::DOF as f64 * std::f64::consts::TAU.ln())
 }

@@ -460,7 +460,7 @@ impl ScanMatcher2d {
             ],
             [gx + best.dx, gy + best.dy, gt + best.dt],
         ];
-        Some(self.peak(field, points, starts, fine_dt, mean_range, scale))
+        Some(self.peak(field, points, &starts, fine_dt, mean_range, scale))
     }
 
     /// For `points` (robot frame, m; a thinning of `beams` returns) on
@@ -500,12 +500,12 @@ impl ScanMatcher2d {
         }
         let (scale, mean_range, fine_dt) = self.scales(field, points, beams);
         let (x, y, t) = xyt(guess);
-        let g = [x, y, t];
-        Some(self.peak(field, points, [g, g], fine_dt, mean_range, scale))
+        Some(self.peak(field, points, &[[x, y, t]], fine_dt, mean_range, scale))
     }
 
     /// The peak of the smooth score of `points` on `field` climbed from the
-    /// better of `starts` (map-frame `[x, y, θ]`): a sub-cell hill-climb
+    /// best of `starts` (map-frame `[x, y, θ]`, at least one; the first on
+    /// ties): a sub-cell hill-climb
     /// on the interpolated field, halving the steps (GMapping's matcher;
     /// the first heading step is half of `fine_dt`), then the curvature
     /// there, scaled by `scale` to the DP likelihood (`mean_range`, m, sets
@@ -514,7 +514,7 @@ impl ScanMatcher2d {
         &self,
         field: &Field,
         points: &[[f64; 2]],
-        starts: [[f64; 3]; 2],
+        starts: &[[f64; 3]],
         fine_dt: f64,
         mean_range: f64,
         scale: f64,
@@ -525,10 +525,11 @@ impl ScanMatcher2d {
         let score = |q: [f64; 3]| field.smooth_score(points, floor, q);
         let mut cur = starts[0];
         let mut cur_s = score(cur);
-        let alt = starts[1];
-        let alt_s = score(alt);
-        if alt_s > cur_s {
-            (cur, cur_s) = (alt, alt_s);
+        for &alt in &starts[1..] {
+            let alt_s = score(alt);
+            if alt_s > cur_s {
+                (cur, cur_s) = (alt, alt_s);
+            }
         }
         let mut step = [0.5 * res, 0.5 * res, 0.5 * fine_dt];
         for _ in 0..c.refine_levels {
@@ -700,9 +701,7 @@ impl ScanMatcher2d {
             DMatrix::from_column_slice(3, 3, body.as_slice()),
         )
     }
-}
 
-impl ScanMatcher2d {
     /// The searched peak's proposal `best` of a particle at `prev`, joined
     /// by `near` (the peak nearest the odometry guess) with probability
     /// `odometry_peak_share` where `near`'s mean lies outside 3 σ of
@@ -721,10 +720,7 @@ impl ScanMatcher2d {
         else {
             return best;
         };
-        use crate::geometry::Pose;
-        let xi = nalgebra::DVector::from_vec((prev * db).perturbation_to(&(prev * dn)));
-        let apart = lb
-            .solve_lower_triangular(&xi)
+        let apart = crate::proposal::whitened(prev, db, lb, &(prev * dn))
             .is_some_and(|z| z.norm_squared() > 9.0);
         if !apart {
             return best;
