@@ -48,6 +48,12 @@ pub struct PreparedLog {
 /// `min_rotation` since the last kept one; at most `max_steps` after the first.
 pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<PreparedLog> {
     cfg.validate()?;
+    // The usable range map2d would take: the range survey's over the whole log.
+    let cap = dpslam::pipeline::map2d::RangeSurvey::of_scans(
+        dpslam::pipeline::map2d::open_configured(log, cfg)?,
+    )?
+    .default_range()
+    .unwrap_or(dpslam::slam::slam2d::DEFAULT_RANGE_CAP);
     let reader = dpslam::pipeline::map2d::open_configured(log, cfg)?;
     let sensor = sensor_mount(cfg, reader.format());
     let f = &cfg.filter;
@@ -59,7 +65,7 @@ pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<Prepare
         let s = item?;
         let index = index as u32;
         if first.is_none() {
-            max_range = usable_range(cfg, s.max_range);
+            max_range = usable_range(cfg, s.max_range, cap);
             first = Some(to_scan(
                 &s.as_ranges(),
                 sensor,

@@ -10,6 +10,7 @@ use crate::io::map_image::write_map;
 use crate::io::tum::write_tum;
 use crate::scan::LaserScan2d;
 use crate::slam::Slam2d;
+use crate::slam::slam2d::{DEFAULT_RANGE_CAP, RANGE_SHARE};
 use crate::{Error, Result};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -116,7 +117,7 @@ pub struct Map2dSummary {
 /// third of its readings are real returns between 10 and 51 m, with 51.15 m
 /// marking "no return". Taking the declaration at its word drops those
 /// returns and leaves open spaces featureless.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RangeSurvey {
     /// Readings seen (every beam of every scan).
     pub readings: usize,
@@ -127,9 +128,30 @@ pub struct RangeSurvey {
     pub largest: f64,
     /// Largest declared maximum range, m.
     pub declared: f64,
+    /// Finite positive readings per [`RangeSurvey::BIN`]-metre bin of range
+    /// (the last bin holds everything beyond), for
+    /// [`RangeSurvey::covering`].
+    pub bins: [usize; RangeSurvey::BINS],
+}
+
+impl Default for RangeSurvey {
+    fn default() -> Self {
+        Self {
+            readings: 0,
+            between: 0,
+            largest: 0.0,
+            declared: 0.0,
+            bins: [0; Self::BINS],
+        }
+    }
 }
 
 impl RangeSurvey {
+    /// Width of a bin of [`RangeSurvey::bins`], m.
+    pub const BIN: f64 = 0.5;
+    /// Bins of [`RangeSurvey::bins`]: 0.5 m up to 100 m.
+    pub const BINS: usize = 200;
+
     /// Surveys every scan of `log`.
     pub fn of_log(log: &Path) -> Result<Self> {
         Self::of_scans(open_log2d(log)?)
@@ -147,6 +169,10 @@ impl RangeSurvey {
             survey.declared = survey.declared.max(s.max_range);
             for &r in s.ranges.iter().filter(|r| r.is_finite()) {
                 survey.largest = survey.largest.max(r);
+                if r > 0.0 {
+                    let bin = ((r / Self::BIN) as usize).min(Self::BINS - 1);
+                    survey.bins[bin] += 1;
+                }
                 if r > s.max_range * 1.01 {
                     *above.entry((r * 1000.0) as u64).or_default() += 1;
                 }
@@ -184,7 +210,47 @@ impl RangeSurvey {
                 log.display(),
             ));
         }
+        if let Some(r) = self.default_range().filter(|&r| r == max_range) {
+            out.push(format!(
+                "{}: more than a tenth of the laser returns lie beyond {DEFAULT_RANGE_CAP} m: \
+                 usable range {r} m, within which {:.0} % lie (traces cost time and memory \
+                 linear in range; laser.max_range sets it)",
+                log.display(),
+                100.0 * RANGE_SHARE,
+            ));
+        }
         out
+    }
+
+    /// The range (m, a bin's upper edge) within which `share` (0..1) of the
+    /// log's returns lie: finite positive readings below its saturation
+    /// value (0.999 × the largest, where a laser writes "no return");
+    /// `None` without returns.
+    pub fn covering(&self, share: f64) -> Option<f64> {
+        let saturated = ((self.largest * 0.999 / Self::BIN) as usize).min(Self::BINS);
+        let returns = &self.bins[..saturated];
+        let total: usize = returns.iter().sum();
+        if total == 0 {
+            return None;
+        }
+        let want = (share.clamp(0.0, 1.0) * total as f64).ceil() as usize;
+        let mut seen = 0;
+        for (i, &n) in returns.iter().enumerate() {
+            seen += n;
+            if seen >= want {
+                return Some((i + 1) as f64 * Self::BIN);
+            }
+        }
+        Some(saturated as f64 * Self::BIN)
+    }
+
+    /// The default usable range for this log, m: the range covering
+    /// [`RANGE_SHARE`] of its returns where that is beyond
+    /// [`DEFAULT_RANGE_CAP`] (outdoors, where most of what the laser sees
+    /// is far), else `None` (the cap).
+    pub fn default_range(&self) -> Option<f64> {
+        self.covering(RANGE_SHARE)
+            .filter(|&r| r > DEFAULT_RANGE_CAP)
     }
 
     /// Whether ≥ 1 % of the readings contradict the declared maximum.
@@ -255,6 +321,7 @@ pub fn run_filter2d_observed(
     let survey = RangeSurvey::of_scans(open_log2d_with(log, &cfg.bag)?)?;
     let sensor_max = survey.sensor_max(cfg.laser.trust_declared_max_range);
     slam.set_no_return_range(sensor_max);
+    slam.set_default_range(survey.default_range());
     let mut reader = open_configured(log, cfg)?;
     let format = reader.format();
     slam.set_mount(sensor_mount_of(cfg, &reader));
@@ -468,5 +535,34 @@ mod tests {
         let survey = RangeSurvey::of_scans(few).unwrap();
         assert_eq!(survey.between, 1);
         assert!(!survey.contradicts_declaration());
+    }
+
+    #[test]
+    fn the_default_range_covers_nine_tenths_of_the_returns_outdoors_only() {
+        // Indoors: every return within 8 m, "no return" written as 81.91.
+        let indoor = (0..10).map(|_| Ok(scan(vec![2.0, 5.0, 7.9, 81.91, f64::NAN], 81.91)));
+        let survey = RangeSurvey::of_scans(indoor).unwrap();
+        assert_eq!(survey.covering(1.0), Some(8.0));
+        assert_eq!(survey.covering(0.5), Some(5.5));
+        assert_eq!(survey.default_range(), None);
+        // Outdoors: 6 of 10 returns within 20 m, 9 of 10 within 35 m; the
+        // saturated 81.91 m readings are not returns.
+        let ranges = vec![
+            3.0, 8.0, 12.0, 15.0, 18.0, 19.0, 26.0, 31.0, 34.9, 60.0, 81.91,
+        ];
+        let outdoor = (0..10).map(|_| Ok(scan(ranges.clone(), 81.91)));
+        let survey = RangeSurvey::of_scans(outdoor).unwrap();
+        assert_eq!(survey.default_range(), Some(35.0));
+        let said = survey.warnings(Path::new("campus.log"), None, 35.0);
+        assert!(said[0].contains("usable range 35 m"), "{said:?}");
+        assert!(
+            survey
+                .warnings(Path::new("campus.log"), None, 20.0)
+                .is_empty()
+        );
+        assert_eq!(survey.covering(1.0), Some(60.5));
+        // No returns at all: nothing to cover.
+        let none = (0..3).map(|_| Ok(scan(vec![f64::NAN, 81.91], 81.91)));
+        assert_eq!(RangeSurvey::of_scans(none).unwrap().covering(0.9), None);
     }
 }

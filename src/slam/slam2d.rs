@@ -17,8 +17,14 @@ use crate::scan_match::ScanMatcher2d;
 use crate::scorer::Scorer;
 use crate::{Error, Result};
 
-/// Hard cap on the default usable range (m): traces cost time linear in range.
+/// Cap on the default usable range (m): traces cost time linear in range.
+/// Where more than a tenth of a log's returns lie beyond it (outdoors),
+/// `map2d` raises it to cover [`RANGE_SHARE`] of them
+/// ([`Slam2d::set_default_range`]).
 pub const DEFAULT_RANGE_CAP: f64 = 20.0;
+
+/// Share of a log's returns the default usable range covers at least.
+pub const RANGE_SHARE: f64 = 0.9;
 
 /// Map images show, per cell, the probability that a beam is stopped within
 /// this many metres of travel through material of the cell's density. One
@@ -27,12 +33,13 @@ pub const DEFAULT_RANGE_CAP: f64 = 20.0;
 /// while free space (density 0) stays white.
 pub const DISPLAY_PATH: f64 = 0.10;
 
-/// The usable range (m) for a laser whose sensor limit is `sensor_max`.
-pub fn usable_range(cfg: &Config, sensor_max: f64) -> f64 {
+/// The usable range (m) for a laser whose sensor limit is `sensor_max`:
+/// `laser.max_range` where set, else the sensor limit capped at `cap` (m).
+pub fn usable_range(cfg: &Config, sensor_max: f64, cap: f64) -> f64 {
     if cfg.laser.max_range > 0.0 {
         cfg.laser.max_range
     } else {
-        sensor_max.min(DEFAULT_RANGE_CAP)
+        sensor_max.min(cap)
     }
 }
 
@@ -225,6 +232,8 @@ pub struct Slam2d {
     mount: Pose2,
     /// "No return" threshold overriding each reading's declared maximum, m.
     no_return_at: Option<f64>,
+    /// Cap on the usable range when `laser.max_range` is 0, m.
+    range_cap: f64,
     /// The scorer to use, until the filter exists (built on the first scan).
     scorer: Option<Box<dyn Scorer<2, Pose2>>>,
     levels: Option<Levels>,
@@ -251,6 +260,7 @@ impl Slam2d {
             cfg,
             mount,
             no_return_at: None,
+            range_cap: DEFAULT_RANGE_CAP,
             scorer: None,
             levels: None,
             last_processed: None,
@@ -273,6 +283,14 @@ impl Slam2d {
     /// [`crate::pipeline::map2d::RangeSurvey`]).
     pub fn set_no_return_range(&mut self, range: Option<f64>) {
         self.no_return_at = range;
+    }
+
+    /// Caps the usable range at `range` m instead of [`DEFAULT_RANGE_CAP`]
+    /// when `laser.max_range` is 0 (`None`: that cap), e.g. from
+    /// [`crate::pipeline::map2d::RangeSurvey::default_range`]. Takes effect
+    /// from the first scan; call it before.
+    pub fn set_default_range(&mut self, range: Option<f64>) {
+        self.range_cap = range.unwrap_or(DEFAULT_RANGE_CAP);
     }
 
     /// Scores scans with `scorer` (e.g. the GPU backend) instead of the CPU.
@@ -346,7 +364,7 @@ impl Slam2d {
     /// Builds the filter on the first scan.
     fn start(&mut self, reading: &Ranges2d<'_>, index: u32) {
         let cfg = &self.cfg;
-        self.max_range = usable_range(cfg, reading.max_range);
+        self.max_range = usable_range(cfg, reading.max_range, self.range_cap);
         let scan = to_scan(reading, self.mount, cfg.laser.max_beams, self.max_range);
         self.beams_per_scan = scan.beams.len();
         let laser = LaserModel::new(&cfg.laser, cfg.cell_size(), self.max_range);
