@@ -129,7 +129,7 @@ pub struct RangeSurvey {
     /// Largest declared maximum range, m.
     pub declared: f64,
     /// Finite positive readings per [`RangeSurvey::BIN`]-metre bin of range
-    /// (the last bin holds everything beyond), for
+    /// (the last bin holds everything from 99.5 m on), for
     /// [`RangeSurvey::covering`].
     pub bins: [usize; RangeSurvey::BINS],
 }
@@ -227,7 +227,8 @@ impl RangeSurvey {
     /// value (0.999 × the largest, where a laser writes "no return");
     /// `None` without returns.
     pub fn covering(&self, share: f64) -> Option<f64> {
-        let saturated = ((self.largest * 0.999 / Self::BIN) as usize).min(Self::BINS);
+        // The last bin also holds saturation values beyond 100 m: never returns.
+        let saturated = ((self.largest * 0.999 / Self::BIN) as usize).min(Self::BINS - 1);
         let returns = &self.bins[..saturated];
         let total: usize = returns.iter().sum();
         if total == 0 {
@@ -561,6 +562,9 @@ mod tests {
                 .is_empty()
         );
         assert_eq!(survey.covering(1.0), Some(60.5));
+        // A laser writing 150 m for "no return": those are not returns either.
+        let far = (0..10).map(|_| Ok(scan(vec![5.0, 150.0, 150.0], 150.0)));
+        assert_eq!(RangeSurvey::of_scans(far).unwrap().covering(1.0), Some(5.5));
         // No returns at all: nothing to cover.
         let none = (0..3).map(|_| Ok(scan(vec![f64::NAN, 81.91], 81.91)));
         assert_eq!(RangeSurvey::of_scans(none).unwrap().covering(0.9), None);
