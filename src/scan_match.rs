@@ -905,8 +905,8 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
         // inherits (from a common ancestor) or none inherits looks the same
         // through every view: it is resolved here, once. Only cells written
         // since the groups' lineages split (about what the robot sees now)
-        // are resolved through each group's view: on a large map that is a
-        // few per cent of the cells in reach.
+        // are resolved through each group's view: on fr079-raw's first
+        // ~700 scans, about 30 % of the ~6 500 hit cells in reach.
         let cell = self.cell;
         let lo = boxes.iter().fold([f64::INFINITY; 2], |a, b| {
             [a[0].min(b.0[0]), a[1].min(b.0[1])]
