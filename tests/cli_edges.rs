@@ -103,3 +103,50 @@ fn particle_counts_that_cannot_work_are_refused_saying_why() {
     assert!(t.elapsed() < Duration::from_secs(1));
     assert!(!Path::new(&out).exists());
 }
+
+#[test]
+fn what_the_range_survey_finds_is_said_before_the_mapping_and_once() {
+    // A laser whose header declares 10 m while a third of its readings are
+    // returns at 15 m and 51.15 m means "no return" (edmonton's case).
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("understated.clf");
+    let mut text = String::from("PARAM robot_front_laser_max 10\n");
+    for i in 0..30 {
+        let ranges: Vec<String> = (0..181)
+            .map(|b| match b % 3 {
+                0 => "5.0",
+                1 => "15.0",
+                _ => "51.15",
+            })
+            .map(String::from)
+            .collect();
+        let x = 0.1 * i as f64;
+        text.push_str(&format!(
+            "FLASER 181 {} {x} 0 0 {x} 0 0 {i}.0 host {i}.0\n",
+            ranges.join(" ")
+        ));
+    }
+    std::fs::write(&log, text).unwrap();
+    let o = Command::new(dpslam())
+        .arg("map2d")
+        .arg(&log)
+        .args(["--particles", "3", "--threads", "1", "--out"])
+        .arg(dir.path().join("run"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let lines: Vec<&str> = err.lines().collect();
+    let said: Vec<usize> = (0..lines.len())
+        .filter(|&i| lines[i].contains("declared maximum range of 10 m"))
+        .collect();
+    assert_eq!(said.len(), 1, "{err}");
+    let first_progress = lines
+        .iter()
+        .position(|l| l.starts_with("map2d: ") && l.contains(" % ("))
+        .expect("progress lines on a pipe");
+    assert!(said[0] < first_progress, "{err}");
+    // The run's summary keeps it for the record.
+    let run = std::fs::read_to_string(dir.path().join("run/run.json")).unwrap();
+    assert!(run.contains("declared maximum range of 10 m"), "{run}");
+}

@@ -143,11 +143,13 @@ fn motion_learning_recovers_the_simulated_odometry_bias_and_records_the_model() 
     let out = dir.path().join("run");
     let cfg = small_config();
     let mut seen = 0;
+    let ranges = dpslam::pipeline::map2d::RangeSettings::of_log(&log, &cfg).unwrap();
     let (s, rounds) = dpslam::pipeline::learn_motion::run_map2d_learning(
         &log,
         &out,
         &cfg,
         dpslam::backend::Backend::Cpu,
+        &ranges,
         1,
         |_| seen += 1,
     )

@@ -29,6 +29,7 @@ use dpslam::geometry::xyt;
 use dpslam::io::log2d::open_log2d;
 use dpslam::io::tum::{Stamped, read_tum};
 use dpslam::pipeline::learn_motion::run_map2d_learning;
+use dpslam::pipeline::map2d::RangeSettings;
 use dpslam::pipeline::map2d::run_map2d;
 use dpslam::sim::perturb::{NoiseModel, perturb_log};
 use dpslam::{Error, Result};
@@ -510,7 +511,9 @@ pub fn run_dataset(d: &Dataset, opts: &AccuracyOptions) -> Result<RunResult> {
             let reset = reset_peak_memory();
             let s = if opts.learn_motion > 0 {
                 let backend = dpslam::backend::Backend::Cpu;
-                run_map2d_learning(&log, &run_dir, &cfg, backend, opts.learn_motion, |_| {})?.0
+                let ranges = RangeSettings::of_log(&log, &cfg)?;
+                let rounds = opts.learn_motion;
+                run_map2d_learning(&log, &run_dir, &cfg, backend, &ranges, rounds, |_| {})?.0
             } else {
                 run_map2d(&log, &run_dir, &cfg)?
             };

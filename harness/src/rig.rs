@@ -6,10 +6,10 @@ use dpslam::config::Config;
 use dpslam::filter::{ParticleFilter, Sample, StepInput};
 use dpslam::geometry::{Pose, Pose2};
 use dpslam::laser_model::{LaserModel, Trace};
-use dpslam::pipeline::map2d::sensor_mount;
+use dpslam::pipeline::map2d::{RangeSettings, sensor_mount};
 use dpslam::scan::Scan;
 use dpslam::scorer::{BeamSubset, Candidate, CpuScorer, ScoreContext, Scorer};
-use dpslam::slam::slam2d::{moved_enough, new_filter, to_scan, usable_range};
+use dpslam::slam::slam2d::{moved_enough, new_filter, to_scan};
 use dpslam::{Error, Result};
 use std::path::Path;
 
@@ -48,12 +48,8 @@ pub struct PreparedLog {
 /// `min_rotation` since the last kept one; at most `max_steps` after the first.
 pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<PreparedLog> {
     cfg.validate()?;
-    // The usable range map2d would take: the range survey's over the whole log.
-    let cap = dpslam::pipeline::map2d::RangeSurvey::of_scans(
-        dpslam::pipeline::map2d::open_configured(log, cfg)?,
-    )?
-    .default_range()
-    .unwrap_or(dpslam::slam::slam2d::DEFAULT_RANGE_CAP);
+    // The "no return" threshold and usable range map2d would take.
+    let ranges = RangeSettings::of_log(log, cfg)?;
     let reader = dpslam::pipeline::map2d::open_configured(log, cfg)?;
     let sensor = sensor_mount(cfg, reader.format());
     let f = &cfg.filter;
@@ -63,22 +59,18 @@ pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<Prepare
     let mut steps = Vec::new();
     for (index, item) in reader.enumerate() {
         let s = item?;
+        let reading = ranges.reading(s.as_ranges());
         let index = index as u32;
         if first.is_none() {
-            max_range = usable_range(cfg, s.max_range, cap);
-            first = Some(to_scan(
-                &s.as_ranges(),
-                sensor,
-                cfg.laser.max_beams,
-                max_range,
-            ));
+            max_range = ranges.usable_range(cfg, reading.max_range);
+            first = Some(to_scan(&reading, sensor, cfg.laser.max_beams, max_range));
             last_odo = s.odometry;
         } else {
             let delta = last_odo.inverse() * s.odometry;
             if moved_enough(f, &delta) {
                 steps.push(PreparedStep {
                     delta,
-                    scan: to_scan(&s.as_ranges(), sensor, cfg.laser.max_beams, max_range),
+                    scan: to_scan(&reading, sensor, cfg.laser.max_beams, max_range),
                     index,
                 });
                 last_odo = s.odometry;

@@ -156,6 +156,11 @@ pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
         (None, Some(t)) => t.0.clone(),
         (None, None) => unreachable!("the embedded log is written when no log is given"),
     };
+    // The range survey reads the whole log before the long work: what it
+    // finds worth a warning is said now, not after the run.
+    let ranges = dpslam::pipeline::map2d::RangeSettings::of_log(&log, &cfg)?;
+    let early = ranges.warnings(&log, &cfg);
+    super::progress::print_warnings(&early);
     let s = if a.learn_motion > 0 {
         let report = |r: &dpslam::pipeline::learn_motion::LearnRound| {
             let m = &r.fit.model;
@@ -185,6 +190,7 @@ pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
             &a.out,
             &cfg,
             a.backend,
+            &ranges,
             a.learn_motion,
             report,
         )?
@@ -196,13 +202,20 @@ pub fn run(a: Map2dArgs) -> dpslam::Result<()> {
             &a.out,
             &cfg,
             a.backend,
+            &ranges,
             &mut |done, total| progress.update(done, total),
         )?;
         progress.finish();
         s
     };
     super::progress::print_backend_note(&s.backend);
-    super::progress::print_warnings(&s.warnings);
+    let later: Vec<String> = s
+        .warnings
+        .iter()
+        .filter(|w| !early.contains(w))
+        .cloned()
+        .collect();
+    super::progress::print_warnings(&later);
     println!(
         "map2d: {} scans ({} processed), {} particles, {:.1} s wall, peak {:.0} MiB -> {}",
         s.scans,

@@ -2,7 +2,7 @@
 //! full 2-D SLAM run (E-step) and a fit of the C/D/T model to the best
 //! trajectory's motions (M-step), then the final run with the learned model.
 
-use super::map2d::{Map2dSummary, run_filter2d, run_map2d_with};
+use super::map2d::{Map2dSummary, RangeSettings, run_filter2d_observed, run_map2d_observed};
 use crate::Result;
 use crate::config::Config;
 use crate::motion_learning::{LearnOptions, MotionFit, fit_cdt};
@@ -24,12 +24,14 @@ pub struct LearnRound {
 /// Learns the C/D/T motion model of `log` (dissertation ch. 6): `rounds`
 /// rounds of a full SLAM run with the current model (E-step) and a fit of
 /// the model to the best trajectory's motions (M-step, [`fit_cdt`]),
-/// starting from `cfg.motion2d`, calling `on_round` after each. Returns
+/// starting from `cfg.motion2d`, calling `on_round` after each; every run
+/// takes the range settings `ranges` ([`RangeSettings::of_log`]). Returns
 /// `cfg` with the learned model and the rounds; writes nothing.
 pub fn learn_motion2d(
     log: &Path,
     cfg: &Config,
     backend: crate::backend::Backend,
+    ranges: &RangeSettings,
     rounds: usize,
     mut on_round: impl FnMut(&LearnRound),
 ) -> Result<(Config, Vec<LearnRound>)> {
@@ -38,7 +40,7 @@ pub fn learn_motion2d(
     let mut history = Vec::with_capacity(rounds);
     for round in 1..=rounds {
         let start = Instant::now();
-        let run = run_filter2d(log, &cfg, backend)?;
+        let run = run_filter2d_observed(log, &cfg, backend, ranges, &mut super::no_progress)?;
         let fit = fit_cdt(&run.slam.motion_samples(), &cfg.motion2d, &opts)?;
         cfg.motion2d = fit.model.clone();
         let r = LearnRound {
@@ -52,19 +54,21 @@ pub fn learn_motion2d(
     Ok((cfg, history))
 }
 
-/// [`learn_motion2d`], then [`run_map2d_with`] with the learned model: the
-/// run folder's `config.toml` holds the learned model (so `--config` on it
-/// reproduces the final run) and `motion_learning.json` the rounds.
+/// [`learn_motion2d`], then [`run_map2d_observed`] with the learned model
+/// (every run with the range settings `ranges`): the run folder's
+/// `config.toml` holds the learned model (so `--config` on it reproduces
+/// the final run) and `motion_learning.json` the rounds.
 pub fn run_map2d_learning(
     log: &Path,
     out: &Path,
     cfg: &Config,
     backend: crate::backend::Backend,
+    ranges: &RangeSettings,
     rounds: usize,
     on_round: impl FnMut(&LearnRound),
 ) -> Result<(Map2dSummary, Vec<LearnRound>)> {
-    let (learned, history) = learn_motion2d(log, cfg, backend, rounds, on_round)?;
-    let summary = run_map2d_with(log, out, &learned, backend)?;
+    let (learned, history) = learn_motion2d(log, cfg, backend, ranges, rounds, on_round)?;
+    let summary = run_map2d_observed(log, out, &learned, backend, ranges, &mut super::no_progress)?;
     super::write_json(&out.join("motion_learning.json"), &history)?;
     Ok((summary, history))
 }

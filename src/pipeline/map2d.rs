@@ -9,8 +9,9 @@ use crate::io::log2d::{LogFormat, LogReader2d, open_log2d, open_log2d_with};
 use crate::io::map_image::write_map;
 use crate::io::tum::write_tum;
 use crate::scan::LaserScan2d;
+use crate::scan::Ranges2d;
 use crate::slam::Slam2d;
-use crate::slam::slam2d::{DEFAULT_RANGE_CAP, RANGE_SHARE};
+use crate::slam::slam2d::{DEFAULT_RANGE_CAP, RANGE_SHARE, usable_range};
 use crate::{Error, Result};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -267,6 +268,72 @@ impl RangeSurvey {
     }
 }
 
+/// What a log's range survey sets for a 2-D run of it under a
+/// configuration, decided before the run starts: the "no return" threshold
+/// and the default usable range. Every consumer of a log's scans (the
+/// pipeline, the benches) takes them from here.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RangeSettings {
+    /// The survey they come from.
+    pub survey: RangeSurvey,
+    /// Readings at or above this (m) mean "no return", whatever each
+    /// reading declares (`None`: the declaration holds).
+    pub no_return_at: Option<f64>,
+    /// Cap on the usable range where `laser.max_range` is 0, m (`None`:
+    /// [`DEFAULT_RANGE_CAP`]).
+    pub default_range: Option<f64>,
+}
+
+impl RangeSettings {
+    /// Surveys every scan of `log` (the `cfg.bag` topics of a bag) and
+    /// decides under `cfg`.
+    pub fn of_log(log: &Path, cfg: &Config) -> Result<Self> {
+        let survey = RangeSurvey::of_scans(open_log2d_with(log, &cfg.bag)?)?;
+        Ok(Self::of_survey(survey, cfg))
+    }
+
+    /// What `survey` sets under `cfg`.
+    pub fn of_survey(survey: RangeSurvey, cfg: &Config) -> Self {
+        Self {
+            no_return_at: survey.sensor_max(cfg.laser.trust_declared_max_range),
+            default_range: survey.default_range(),
+            survey,
+        }
+    }
+
+    /// Sets them on `slam`, before its first scan.
+    pub fn apply(&self, slam: &mut Slam2d) {
+        slam.set_no_return_range(self.no_return_at);
+        slam.set_default_range(self.default_range);
+    }
+
+    /// `reading` with the "no return" threshold applied, as a run sees it.
+    pub fn reading<'a>(&self, reading: Ranges2d<'a>) -> Ranges2d<'a> {
+        Ranges2d {
+            max_range: self.no_return_at.unwrap_or(reading.max_range),
+            ..reading
+        }
+    }
+
+    /// The usable range (m) of a run under `cfg` whose first reading
+    /// declares `declared` m ([`usable_range`]).
+    pub fn usable_range(&self, cfg: &Config, declared: f64) -> f64 {
+        usable_range(
+            cfg,
+            self.no_return_at.unwrap_or(declared),
+            self.default_range.unwrap_or(DEFAULT_RANGE_CAP),
+        )
+    }
+
+    /// What a run of `log` under `cfg` should warn about, known before it
+    /// starts ([`RangeSurvey::warnings`], for the range the run will take
+    /// if its readings declare the survey's largest maximum).
+    pub fn warnings(&self, log: &Path, cfg: &Config) -> Vec<String> {
+        let max_range = self.usable_range(cfg, self.survey.declared);
+        self.survey.warnings(log, self.no_return_at, max_range)
+    }
+}
+
 /// Runs 2-D DP-SLAM on `log` and writes the run folder `out`.
 pub fn run_map2d(log: &Path, out: &Path, cfg: &Config) -> Result<Map2dSummary> {
     run_map2d_with(log, out, cfg, crate::backend::Backend::Cpu)
@@ -295,7 +362,8 @@ pub fn run_filter2d(
     cfg: &Config,
     backend: crate::backend::Backend,
 ) -> Result<FilterRun2d> {
-    run_filter2d_observed(log, cfg, backend, &mut super::no_progress)
+    let ranges = RangeSettings::of_log(log, cfg)?;
+    run_filter2d_observed(log, cfg, backend, &ranges, &mut super::no_progress)
 }
 
 /// Opens `log` as `map2d` reads it under `cfg`: the bag topics
@@ -309,20 +377,20 @@ pub fn open_configured(log: &Path, cfg: &Config) -> Result<LogReader2d> {
         .with_beam_angles(angle_min, angle_increment))
 }
 
-/// [`run_filter2d`], reporting progress in bytes of the log read.
+/// [`run_filter2d`] with the range settings `ranges` (the survey of `log`
+/// under `cfg`, [`RangeSettings::of_log`]), reporting progress in bytes of
+/// the log read.
 pub fn run_filter2d_observed(
     log: &Path,
     cfg: &Config,
     backend: crate::backend::Backend,
+    ranges: &RangeSettings,
     progress: super::Progress<'_>,
 ) -> Result<FilterRun2d> {
     let mut slam = Slam2d::new(cfg.clone())?;
     let (scorer, backend_used) = crate::backend::make_scorer::<2, Pose2>(backend, &cfg.gpu)?;
     slam.set_scorer(scorer)?;
-    let survey = RangeSurvey::of_scans(open_log2d_with(log, &cfg.bag)?)?;
-    let sensor_max = survey.sensor_max(cfg.laser.trust_declared_max_range);
-    slam.set_no_return_range(sensor_max);
-    slam.set_default_range(survey.default_range());
+    ranges.apply(&mut slam);
     let mut reader = open_configured(log, cfg)?;
     let format = reader.format();
     slam.set_mount(sensor_mount_of(cfg, &reader));
@@ -348,7 +416,9 @@ pub fn run_filter2d_observed(
         _ => None,
     };
     Ok(FilterRun2d {
-        warnings: survey.warnings(log, sensor_max, slam.max_range()),
+        warnings: ranges
+            .survey
+            .warnings(log, ranges.no_return_at, slam.max_range()),
         slam,
         format,
         odometry_retimed: reader.retimed(),
@@ -364,19 +434,23 @@ pub fn run_map2d_with(
     cfg: &Config,
     backend: crate::backend::Backend,
 ) -> Result<Map2dSummary> {
-    run_map2d_observed(log, out, cfg, backend, &mut super::no_progress)
+    let ranges = RangeSettings::of_log(log, cfg)?;
+    run_map2d_observed(log, out, cfg, backend, &ranges, &mut super::no_progress)
 }
 
-/// [`run_map2d_with`], reporting progress in bytes of the log read.
+/// [`run_map2d_with`] with the range settings `ranges` (the survey of `log`
+/// under `cfg`, [`RangeSettings::of_log`]), reporting progress in bytes of
+/// the log read.
 pub fn run_map2d_observed(
     log: &Path,
     out: &Path,
     cfg: &Config,
     backend: crate::backend::Backend,
+    ranges: &RangeSettings,
     progress: super::Progress<'_>,
 ) -> Result<Map2dSummary> {
     let start = Instant::now();
-    let run = run_filter2d_observed(log, cfg, backend, progress)?;
+    let run = run_filter2d_observed(log, cfg, backend, ranges, progress)?;
     let rows: Vec<(f64, [f64; 7])> = run
         .slam
         .trajectory()?
@@ -568,5 +642,41 @@ mod tests {
         // No returns at all: nothing to cover.
         let none = (0..3).map(|_| Ok(scan(vec![f64::NAN, 81.91], 81.91)));
         assert_eq!(RangeSurvey::of_scans(none).unwrap().covering(0.9), None);
+    }
+
+    #[test]
+    fn range_settings_say_before_the_run_what_the_run_will_take() {
+        let cfg = Config::default();
+        // Declared 10 m, returns to 30 m (1 in 12 beyond 20 m), 51.15 m
+        // saturated: the saturation value becomes "no return" and the
+        // usable range the 20 m cap.
+        let readings = [vec![5.0; 6], vec![15.0; 5], vec![30.0, 51.15]].concat();
+        let edmonton = (0..10).map(|_| Ok(scan(readings.clone(), 10.0)));
+        let r = RangeSettings::of_survey(RangeSurvey::of_scans(edmonton).unwrap(), &cfg);
+        assert_eq!(r.no_return_at, Some(51.15));
+        let s = scan(vec![5.0, 15.0], 10.0);
+        assert_eq!(r.reading(s.as_ranges()).max_range, 51.15);
+        assert_eq!(r.usable_range(&cfg, 10.0), 20.0);
+        let said = r.warnings(Path::new("e.log"), &cfg);
+        assert_eq!(said.len(), 1);
+        assert!(said[0].contains("51.15 m as \"no return\""), "{said:?}");
+        // The same as the run says once it knows its range.
+        assert_eq!(
+            said,
+            r.survey.warnings(Path::new("e.log"), r.no_return_at, 20.0)
+        );
+        // Outdoors: the range covering 9 in 10 returns, unless set.
+        let ranges = vec![
+            3.0, 8.0, 12.0, 15.0, 18.0, 19.0, 26.0, 31.0, 34.9, 60.0, 81.91,
+        ];
+        let campus = (0..10).map(|_| Ok(scan(ranges.clone(), 81.91)));
+        let r = RangeSettings::of_survey(RangeSurvey::of_scans(campus).unwrap(), &cfg);
+        assert_eq!((r.no_return_at, r.default_range), (None, Some(35.0)));
+        assert_eq!(r.usable_range(&cfg, 81.91), 35.0);
+        assert_eq!(r.warnings(Path::new("c.log"), &cfg).len(), 1);
+        let mut set = cfg.clone();
+        set.laser.max_range = 25.0;
+        assert_eq!(r.usable_range(&set, 81.91), 25.0);
+        assert!(r.warnings(Path::new("c.log"), &set).is_empty());
     }
 }
