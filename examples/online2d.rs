@@ -14,7 +14,7 @@ use dpslam::config::Config;
 use dpslam::geometry::{Pose, xyt};
 use dpslam::io::log2d::open_log2d;
 use dpslam::io::tum::tum_line;
-use dpslam::pipeline::map2d::{RangeSurvey, sensor_mount};
+use dpslam::pipeline::map2d::{RangeSettings, sensor_mount};
 use dpslam::slam::Slam2d;
 use std::path::PathBuf;
 
@@ -29,10 +29,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
 
     let mut slam = Slam2d::new(cfg.clone())?;
-    // What `map2d` does before mapping: take the "no return" threshold from
-    // the whole log when its readings contradict the declared maximum.
-    let survey = RangeSurvey::of_log(&log)?;
-    slam.set_no_return_range(survey.sensor_max(cfg.laser.trust_declared_max_range));
+    // What `map2d` does before mapping: survey the whole log for the "no
+    // return" threshold (readings that contradict the declared maximum) and
+    // the default usable range (raised outdoors).
+    RangeSettings::of_log(&log, &cfg)?.apply(&mut slam);
     let reader = open_log2d(&log)?;
     slam.set_mount(sensor_mount(&cfg, reader.format()));
 

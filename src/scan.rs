@@ -74,6 +74,16 @@ pub struct Ranges2d<'a> {
 }
 
 impl Ranges2d<'_> {
+    /// The reading with "no return" from `at` m on instead of from its
+    /// declared maximum (`None`: as declared), for lasers whose declaration
+    /// understates what they return.
+    pub fn with_no_return_at(self, at: Option<f64>) -> Self {
+        Self {
+            max_range: at.unwrap_or(self.max_range),
+            ..self
+        }
+    }
+
     /// Whether reading `i` is a "no return".
     pub fn is_no_return(&self, i: usize) -> bool {
         let r = self.ranges[i];

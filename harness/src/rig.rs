@@ -59,7 +59,7 @@ pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<Prepare
     let mut steps = Vec::new();
     for (index, item) in reader.enumerate() {
         let s = item?;
-        let reading = ranges.reading(s.as_ranges());
+        let reading = s.as_ranges().with_no_return_at(ranges.no_return_at);
         let index = index as u32;
         if first.is_none() {
             max_range = ranges.usable_range(cfg, reading.max_range);

@@ -5,11 +5,10 @@
 
 use crate::config::Config;
 use crate::geometry::{Pose, Pose2, pose2};
-use crate::io::log2d::{LogFormat, LogReader2d, open_log2d, open_log2d_with};
+use crate::io::log2d::{LogFormat, LogReader2d, open_log2d_with};
 use crate::io::map_image::write_map;
 use crate::io::tum::write_tum;
 use crate::scan::LaserScan2d;
-use crate::scan::Ranges2d;
 use crate::slam::Slam2d;
 use crate::slam::slam2d::{DEFAULT_RANGE_CAP, RANGE_SHARE, usable_range};
 use crate::{Error, Result};
@@ -152,11 +151,6 @@ impl RangeSurvey {
     pub const BIN: f64 = 0.5;
     /// Bins of [`RangeSurvey::bins`]: 0.5 m up to 100 m.
     pub const BINS: usize = 200;
-
-    /// Surveys every scan of `log`.
-    pub fn of_log(log: &Path) -> Result<Self> {
-        Self::of_scans(open_log2d(log)?)
-    }
 
     /// Surveys `scans` (a log's, in any order).
     pub fn of_scans(scans: impl IntoIterator<Item = Result<LaserScan2d>>) -> Result<Self> {
@@ -305,14 +299,6 @@ impl RangeSettings {
     pub fn apply(&self, slam: &mut Slam2d) {
         slam.set_no_return_range(self.no_return_at);
         slam.set_default_range(self.default_range);
-    }
-
-    /// `reading` with the "no return" threshold applied, as a run sees it.
-    pub fn reading<'a>(&self, reading: Ranges2d<'a>) -> Ranges2d<'a> {
-        Ranges2d {
-            max_range: self.no_return_at.unwrap_or(reading.max_range),
-            ..reading
-        }
     }
 
     /// The usable range (m) of a run under `cfg` whose first reading
@@ -655,7 +641,10 @@ mod tests {
         let r = RangeSettings::of_survey(RangeSurvey::of_scans(edmonton).unwrap(), &cfg);
         assert_eq!(r.no_return_at, Some(51.15));
         let s = scan(vec![5.0, 15.0], 10.0);
-        assert_eq!(r.reading(s.as_ranges()).max_range, 51.15);
+        assert_eq!(
+            s.as_ranges().with_no_return_at(r.no_return_at).max_range,
+            51.15
+        );
         assert_eq!(r.usable_range(&cfg, 10.0), 20.0);
         let said = r.warnings(Path::new("e.log"), &cfg);
         assert_eq!(said.len(), 1);

@@ -318,10 +318,7 @@ impl Slam2d {
         reading
             .check()
             .map_err(|why| Error::Invalid(format!("scan {index}: {why}")))?;
-        let mut reading = *reading;
-        if let Some(m) = self.no_return_at {
-            reading.max_range = m;
-        }
+        let reading = reading.with_no_return_at(self.no_return_at);
         self.stamps.push((stamp, odometry));
         let processed = match (&mut self.levels, self.last_processed) {
             (None, _) => {
