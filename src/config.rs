@@ -468,6 +468,15 @@ pub struct FilterConfig {
     pub min_rotation: f64,
     /// Resampling scheme.
     pub resampling: Resampling,
+    /// Selective resampling (Grisetti et al., IEEE T-RO 2007, 0.5 there):
+    /// the particle set is drawn anew from all samples only when the
+    /// effective number of particles (Kish's `(Σw)² / Σw²` of the
+    /// particles' accumulated weights) falls below this fraction of
+    /// `particles`. Otherwise each particle keeps one of its own samples,
+    /// drawn by weight, and carries its weight (× the mean weight of its
+    /// samples) to the next step, so a lineage is not lost to one step's
+    /// random draw. ≥ 1: resample every step (the release).
+    pub resample_below: f64,
     /// Proposal of the 2-D filter: `"motion"` or `"scan-matched"` (3-D
     /// always matches with ICP, see `map3d`).
     pub proposal: ProposalKind,
@@ -660,6 +669,7 @@ impl Default for FilterConfig {
             min_translation: 0.05,
             min_rotation: 0.03,
             resampling: Resampling::Multinomial,
+            resample_below: 0.5,
             proposal: ProposalKind::default(),
             report: ReportedPose::default(),
         }
@@ -779,6 +789,9 @@ impl Config {
         }
         if f.passes == 0 {
             return bad("filter.passes must be at least 1");
+        }
+        if !(f.resample_below >= 0.0) {
+            return bad("filter.resample_below must be ≥ 0 (≥ 1: every step)");
         }
         if !(self.map.cells_per_metre.is_finite() && self.map.cells_per_metre > 0.0) {
             return bad("map.cells_per_metre must be positive");

@@ -123,6 +123,9 @@ pub struct StepStats {
     pub best_log_likelihood: f64,
     /// Distinct parent particles among the new particles.
     pub distinct_parents: usize,
+    /// Whether the particle set was drawn anew from all samples
+    /// (`filter.resample_below`); false: each particle kept one of its own.
+    pub resampled: bool,
     /// Particles whose samples came from a scan match this step.
     pub matched: usize,
     /// Live ancestry nodes after pruning.
@@ -204,6 +207,10 @@ pub struct ParticleFilter<const D: usize, P: Pose<D>> {
     copies: Copies,
     numbering: Numbering,
     particles: Vec<Particle<P>>,
+    /// Accumulated log weight of each particle (nats, best 0) under
+    /// selective resampling (`filter.resample_below` < 1); all 0 after a
+    /// resampling.
+    log_weights: Vec<f64>,
     best: usize,
     seed: u64,
     steps: u64,
@@ -282,6 +289,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             map,
             copies: Copies::planted(particles.len()),
             numbering,
+            log_weights: vec![0.0; particles.len()],
             particles,
             best: 0,
             seed,
@@ -317,6 +325,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             };
             self.cfg.particles
         ];
+        self.log_weights = vec![0.0; self.cfg.particles];
         self.best = 0;
         self.seed = seed;
         self.steps = 0;
@@ -391,15 +400,18 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             matched,
         } = self.predict(&input.odometry, &input.proposal, input.scan);
         times.predict_s = t.elapsed().as_secs_f64();
+        let log_ratio = self.with_carried_weights(&samples, log_ratio);
         let weights = self.weigh_corrected(&samples, &log_ratio, input.scan);
         times.weigh_quick_s = weights.quick_s;
         times.weigh_full_s = weights.full_s;
         let t = std::time::Instant::now();
-        let chosen = self.resample(&weights.scores);
+        let (chosen, log_weights) = self.select(&samples, &weights.scores);
+        let resampled = log_weights.is_none();
         times.resample_s = t.elapsed().as_secs_f64();
         let t = std::time::Instant::now();
         let distinct_parents =
             self.update(&samples, &weights.scores, &chosen, input.scan, input.index);
+        self.log_weights = log_weights.unwrap_or_else(|| vec![0.0; chosen.len()]);
         times.update_s = t.elapsed().as_secs_f64();
         let t = std::time::Instant::now();
         self.prune();
@@ -415,6 +427,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
                 .cloned()
                 .fold(f64::NEG_INFINITY, f64::max),
             distinct_parents,
+            resampled,
             matched,
             tree_nodes: self.tree.len(),
             map_entries: self.map.entry_count(),
@@ -545,6 +558,75 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         )
     }
 
+    /// Each sample's starting score (nats): `log_ratio` (empty: 0) plus,
+    /// under selective resampling, its particle's carried log weight, so
+    /// that culling, the reported mean and the draw see the particle's
+    /// whole weight. Unchanged when every carried weight is 0.
+    fn with_carried_weights(&self, samples: &[Sample<P>], log_ratio: Vec<f64>) -> Vec<f64> {
+        if self.log_weights.iter().all(|&w| w == 0.0) {
+            return log_ratio;
+        }
+        samples
+            .iter()
+            .enumerate()
+            .map(|(j, s)| log_ratio.get(j).copied().unwrap_or(0.0) + self.log_weights[s.parent])
+            .collect()
+    }
+
+    /// Which samples become the next particles (ascending sample indices)
+    /// and the particles' carried log weights, in the same order: `None`
+    /// where the set was resampled ([`ParticleFilter::resample`]; every
+    /// weight restarts at 0), which it is every step unless
+    /// `filter.resample_below` < 1. Otherwise, while the effective number
+    /// of particles stays at or above that fraction and no particle lost
+    /// all its samples to culling, each particle keeps one of its own
+    /// samples, drawn by `exp(score)`, and carries the log of its samples'
+    /// mean weight (its carried weight included; best 0).
+    pub fn select(&self, samples: &[Sample<P>], scores: &[f64]) -> (Vec<usize>, Option<Vec<f64>>) {
+        let n = self.particles.len();
+        if self.cfg.resample_below >= 1.0 || n == 0 {
+            return (self.resample(scores), None);
+        }
+        // Samples are drawn particle by particle: each one's are a run.
+        let mut runs = vec![(usize::MAX, 0usize); n];
+        for (j, s) in samples.iter().enumerate() {
+            let r = &mut runs[s.parent];
+            r.0 = r.0.min(j);
+            r.1 += 1;
+        }
+        let marginal: Vec<f64> = runs
+            .iter()
+            .map(|&(first, count)| match count {
+                0 => f64::NEG_INFINITY,
+                _ => log_sum_exp(&scores[first..first + count]) - (count as f64).ln(),
+            })
+            .collect();
+        if marginal.iter().any(|m| !m.is_finite()) {
+            return (self.resample(scores), None);
+        }
+        let top = marginal.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let w: Vec<f64> = marginal.iter().map(|m| (m - top).exp()).collect();
+        let sum: f64 = w.iter().sum();
+        let squares: f64 = w.iter().map(|v| v * v).sum();
+        if sum * sum / squares < self.cfg.resample_below * n as f64 {
+            return (self.resample(scores), None);
+        }
+        let mut rng = stream(self.seed, self.steps, RESAMPLE_STREAM);
+        let chosen = runs
+            .iter()
+            .map(|&(first, count)| {
+                first
+                    + draw(
+                        &scores[first..first + count],
+                        1,
+                        Resampling::Multinomial,
+                        &mut rng,
+                    )[0]
+            })
+            .collect();
+        (chosen, Some(marginal.iter().map(|m| m - top).collect()))
+    }
+
     /// Resample: indices of the samples that become the next particles,
     /// ascending, drawn by weight `exp(score − best)`.
     pub fn resample(&self, scores: &[f64]) -> Vec<usize> {
@@ -617,6 +699,13 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
     /// The current particles.
     pub fn particles(&self) -> &[Particle<P>] {
         &self.particles
+    }
+
+    /// Each particle's carried log weight (nats, best 0; all 0 after a
+    /// resampling, so always all 0 with `filter.resample_below` ≥ 1), in
+    /// the order of [`ParticleFilter::particles`].
+    pub fn log_weights(&self) -> &[f64] {
+        &self.log_weights
     }
 
     /// Index of the particle whose sample scored best in the last step.
@@ -789,6 +878,15 @@ pub fn draw(scores: &[f64], n: usize, resampling: Resampling, rng: &mut Pcg64) -
     };
     chosen.sort_unstable();
     chosen
+}
+
+/// `ln Σ exp(xᵢ)` without overflow (−∞ for none or all −∞).
+fn log_sum_exp(xs: &[f64]) -> f64 {
+    let top = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if !top.is_finite() {
+        return top;
+    }
+    top + xs.iter().map(|x| (x - top).exp()).sum::<f64>().ln()
 }
 
 /// Per parent view (the samples whose particles sit on one ancestry node,

@@ -157,3 +157,53 @@ fn reporting_the_posterior_mean_changes_the_trajectory_not_the_map() {
     assert!(moved.iter().any(|&d| d > 1e-4), "no reported pose moved");
     assert!(moved.iter().all(|&d| d < 0.05), "{moved:?}");
 }
+
+#[test]
+fn selective_resampling_keeps_every_lineage_until_the_weights_degenerate() {
+    let log = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sim2d/sim2d.clf");
+    let mut cfg = Config::default();
+    cfg.filter.resample_below = 1.0;
+    let prepared = prepare_log(&log, &cfg, 10).unwrap();
+    let mut always = prepared.new_filter(50);
+    for s in &prepared.steps {
+        assert!(
+            always.step(&s.input()).resampled,
+            "the release resamples every step"
+        );
+        assert!(always.log_weights().iter().all(|&w| w == 0.0));
+    }
+    cfg.filter.resample_below = 0.25;
+    // A laser model 30× wider than the default flattens the weights, as an
+    // ambiguous scene (a corridor, open space) does.
+    cfg.laser.variance *= 30.0;
+    let prepared = prepare_log(&log, &cfg, 60).unwrap();
+    let mut f = prepared.new_filter(50);
+    let (mut kept, mut redrawn) = (Vec::new(), Vec::new());
+    for s in &prepared.steps {
+        let stats = f.step(&s.input());
+        let w = f.log_weights();
+        assert_eq!(w.len(), 50);
+        if stats.resampled {
+            assert!(w.iter().all(|&w| w == 0.0), "a redrawn set starts equal");
+            redrawn.push(stats.distinct_parents);
+        } else {
+            // The particles carry their weights, the best at 0.
+            let top = w.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            assert_eq!(top, 0.0);
+            assert!(w.iter().any(|&w| w < -1e-3), "{w:?}");
+            kept.push(stats.distinct_parents);
+        }
+    }
+    // Both happen on the simulated loop, and a step that keeps the set
+    // continues (nearly) every lineage where a redraw continues far fewer.
+    assert!(
+        !kept.is_empty() && !redrawn.is_empty(),
+        "kept {kept:?}, redrawn {redrawn:?}"
+    );
+    let mean = |v: &[usize]| v.iter().sum::<usize>() as f64 / v.len() as f64;
+    assert!(mean(&kept) > 40.0, "{kept:?}");
+    assert!(
+        mean(&kept) > mean(&redrawn) + 10.0,
+        "{kept:?} vs {redrawn:?}"
+    );
+}

@@ -90,6 +90,10 @@ pub struct Map2dSummary {
     /// match (`filter.proposal = "scan-matched"`).
     #[serde(default)]
     pub mean_matched: f64,
+    /// Steps whose particle set was drawn anew from all samples (all of
+    /// them unless `filter.resample_below` < 1).
+    #[serde(default)]
+    pub resampled_steps: usize,
     /// Wall time of each phase of the filter steps, summed over the run, s.
     #[serde(default, skip_deserializing)]
     pub phases: crate::filter::PhaseTimes,
@@ -480,6 +484,7 @@ pub fn run_map2d_observed(
         mean_after_full: stats.iter().map(|s| s.after_full as f64).sum::<f64>() / n_steps,
         mean_samples: stats.iter().map(|s| s.samples as f64).sum::<f64>() / n_steps,
         mean_matched: stats.iter().map(|s| s.matched as f64).sum::<f64>() / n_steps,
+        resampled_steps: stats.iter().filter(|s| s.resampled).count(),
         phases: stats.iter().fold(Default::default(), |mut a, s| {
             a += s.times;
             a
