@@ -790,7 +790,7 @@ impl Config {
         if f.passes == 0 {
             return bad("filter.passes must be at least 1");
         }
-        if !(f.resample_below >= 0.0) {
+        if f.resample_below.is_nan() || f.resample_below < 0.0 {
             return bad("filter.resample_below must be ≥ 0 (≥ 1: every step)");
         }
         if !(self.map.cells_per_metre.is_finite() && self.map.cells_per_metre > 0.0) {
@@ -959,6 +959,11 @@ mod tests {
         std::fs::write(&p, "[filter]\nparticles = 0\n").unwrap();
         let e = Config::from_toml_file(&p).unwrap_err().to_string();
         assert!(e.contains("particles"), "{e}");
+        for bad in ["-0.1", "nan"] {
+            std::fs::write(&p, format!("[filter]\nresample_below = {bad}\n")).unwrap();
+            let e = Config::from_toml_file(&p).unwrap_err().to_string();
+            assert!(e.contains("resample_below"), "{bad}: {e}");
+        }
     }
 
     #[test]
