@@ -669,7 +669,7 @@ impl Default for FilterConfig {
             min_translation: 0.05,
             min_rotation: 0.03,
             resampling: Resampling::Multinomial,
-            resample_below: 0.5,
+            resample_below: 1.0,
             proposal: ProposalKind::default(),
             report: ReportedPose::default(),
         }

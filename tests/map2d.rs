@@ -57,8 +57,9 @@ fn simulated_prefix_maps_with_all_outputs_and_small_ate() {
     let ate = evaluate_ate(&truth, &traj, &AteOptions::default()).unwrap();
     assert_eq!(ate.n, traj.len());
     // One seed's ATE on this prefix with 20 particles ranges 0.04–0.13 m
-    // (seeds 1–5, docs/PROPOSAL-2D.md session 22): the median of three
-    // seeds is what the filter reaches, not one draw.
+    // (seeds 1–5, resampling every step or selectively: docs/PROPOSAL-2D.md
+    // session 22): the median of three seeds is what the filter reaches,
+    // not one draw.
     let mut ates = vec![ate.rmse_m];
     for seed in [2, 3] {
         let out = dir.path().join(format!("seed{seed}"));
