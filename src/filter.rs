@@ -598,7 +598,10 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             .iter()
             .map(|&(first, count)| match count {
                 0 => f64::NEG_INFINITY,
-                _ => log_sum_exp(&scores[first..first + count]) - (count as f64).ln(),
+                _ => {
+                    crate::motion_model::log_sum_exp(&scores[first..first + count])
+                        - (count as f64).ln()
+                }
             })
             .collect();
         if marginal.iter().any(|m| !m.is_finite()) {
@@ -878,15 +881,6 @@ pub fn draw(scores: &[f64], n: usize, resampling: Resampling, rng: &mut Pcg64) -
     };
     chosen.sort_unstable();
     chosen
-}
-
-/// `ln Σ exp(xᵢ)` without overflow (−∞ for none or all −∞).
-fn log_sum_exp(xs: &[f64]) -> f64 {
-    let top = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    if !top.is_finite() {
-        return top;
-    }
-    top + xs.iter().map(|x| (x - top).exp()).sum::<f64>().ln()
 }
 
 /// Per parent view (the samples whose particles sit on one ancestry node,

@@ -28,6 +28,16 @@ pub trait MotionModel<const D: usize, P: Pose<D>>: Send + Sync {
     }
 }
 
+/// `ln Σ exp(xᵢ)` without overflow (−∞ for none or all −∞): the log of a
+/// sum of densities or weights given as logs.
+pub(crate) fn log_sum_exp(xs: &[f64]) -> f64 {
+    let top = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if !top.is_finite() {
+        return top;
+    }
+    top + xs.iter().map(|x| (x - top).exp()).sum::<f64>().ln()
+}
+
 /// `ln N(x; 0, σ²)`.
 #[inline]
 pub fn normal_log_density(x: f64, sigma: f64) -> f64 {

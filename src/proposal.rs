@@ -195,8 +195,7 @@ impl<P> Proposal<P> {
                         Some(w.ln() + gaussian_log_density(prev, delta, factor, sample)?)
                     })
                     .collect::<Option<_>>()?;
-                let top = logs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-                Some(top + logs.iter().map(|l| (l - top).exp()).sum::<f64>().ln())
+                Some(crate::motion_model::log_sum_exp(&logs))
             }
         }
     }
