@@ -444,6 +444,8 @@ mod tests {
                 min_step_s: t * 0.9,
                 per_particle_us: t / n as f64 * 1e6,
                 warmup_s: 1.0,
+                phases: Default::default(),
+                mean_full_traces: 0.0,
             })
             .collect();
         let (slope, intercept, exponent, ratio, largest, pr) = summarize(&points);

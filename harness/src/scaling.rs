@@ -10,6 +10,7 @@
 use super::plot::{PALETTE, Plot, Series};
 use super::rig::prepare_log;
 use dpslam::config::Config;
+use dpslam::filter::PhaseTimes;
 use dpslam::{Error, Result};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -43,6 +44,11 @@ pub struct ScalingPoint {
     pub per_particle_us: f64,
     /// Wall time of the warm-up, s (not part of the step times).
     pub warmup_s: f64,
+    /// Mean wall time of each phase of a timed step, s: where a
+    /// super-linear cost comes from.
+    pub phases: PhaseTimes,
+    /// Mean samples per timed step that reached the full traces.
+    pub mean_full_traces: f64,
 }
 
 /// The scaling measurement.
@@ -151,15 +157,21 @@ pub fn run_scaling(opts: &ScalingOptions) -> Result<ScalingReport> {
         filters.push((filter, t0.elapsed().as_secs_f64()));
     }
     let mut times = vec![Vec::with_capacity(opts.timed_steps); filters.len()];
+    let mut phases = vec![PhaseTimes::default(); filters.len()];
+    let mut full_traces = vec![0usize; filters.len()];
     for s in &log.steps[opts.warmup_scans..opts.warmup_scans + opts.timed_steps] {
-        for ((filter, _), times) in filters.iter_mut().zip(&mut times) {
+        for (i, (filter, _)) in filters.iter_mut().enumerate() {
             let t = Instant::now();
-            std::hint::black_box(filter.step(&s.input()));
-            times.push(t.elapsed().as_secs_f64());
+            let stats = std::hint::black_box(filter.step(&s.input()));
+            times[i].push(t.elapsed().as_secs_f64());
+            phases[i] += stats.times;
+            full_traces[i] += stats.after_quick;
         }
     }
     let mut points = Vec::with_capacity(opts.particles.len());
-    for ((&n, (_, warmup_s)), times) in opts.particles.iter().zip(&filters).zip(&times) {
+    for (i, ((&n, (_, warmup_s)), times)) in
+        opts.particles.iter().zip(&filters).zip(&times).enumerate()
+    {
         let mean = times.iter().sum::<f64>() / times.len() as f64;
         let min = times.iter().cloned().fold(f64::INFINITY, f64::min);
         eprintln!(
@@ -172,6 +184,8 @@ pub fn run_scaling(opts: &ScalingOptions) -> Result<ScalingReport> {
             min_step_s: min,
             per_particle_us: mean / n as f64 * 1e6,
             warmup_s: *warmup_s,
+            phases: phases[i].per(times.len() as f64),
+            mean_full_traces: full_traces[i] as f64 / times.len() as f64,
         });
     }
     let (slope, intercept, exponent, ratio, ratio_ls, particle_ratio) = summarize(&points);
@@ -230,6 +244,8 @@ mod tests {
             min_step_s: s,
             per_particle_us: s / n as f64 * 1e6,
             warmup_s: 0.0,
+            phases: Default::default(),
+            mean_full_traces: 0.0,
         }
     }
 
