@@ -221,8 +221,8 @@ impl<const D: usize, P: Pose<D>> Scorer<D, P> for CpuScorer<D> {
         // candidate brings into the CPU cache for the others. Blocks of 32
         // beams per candidate (one block's cells evicting the next
         // candidate's) made a step at 3000 particles 1.4× slower (`bench
-        // scaling`: the full weigh 1.29–1.40 s against 0.77–0.84 s; 3000 vs
-        // 300 particles 11.9–12.2× against 9.6–9.8×); at 50 particles the
+        // scaling`: the full weigh 1.29–1.40 s against 0.77–0.90 s; 3000 vs
+        // 300 particles 11.4–12.2× against 9.6–10.2×); at 50 particles the
         // two orders time the same. Each candidate's beam terms are still
         // added in beam order, so the scores are those of `score_one`, bit
         // for bit, whatever the runs.
