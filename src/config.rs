@@ -466,6 +466,16 @@ pub struct FilterConfig {
     pub min_translation: f64,
     /// ... or this much rotation (rad) since the last processed scan.
     pub min_rotation: f64,
+    /// Place each scan the filter skips (it moved less than
+    /// `min_translation` and `min_rotation`) by one scan match against the
+    /// best particle's map view, from its odometry guess relative to the
+    /// last processed scan, instead of by odometry alone. Only with the
+    /// scan-matched proposal (`proposal = "scan-matched"`) and the flat
+    /// filter; the map and the particles are untouched, so this changes
+    /// only the skipped scans' rows of the trajectory. Where the match
+    /// fails, or with this off, a skipped scan is placed by its odometry
+    /// from the processed scans on both sides, blended by time.
+    pub match_skipped: bool,
     /// Resampling scheme.
     pub resampling: Resampling,
     /// Selective resampling (Grisetti et al., IEEE T-RO 2007, 0.5 there):
@@ -668,6 +678,7 @@ impl Default for FilterConfig {
             cull_threshold: 13.0,
             min_translation: 0.05,
             min_rotation: 0.03,
+            match_skipped: true,
             resampling: Resampling::Multinomial,
             resample_below: 1.0,
             proposal: ProposalKind::default(),

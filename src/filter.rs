@@ -212,6 +212,9 @@ pub struct ParticleFilter<const D: usize, P: Pose<D>> {
     /// resampling.
     log_weights: Vec<f64>,
     best: usize,
+    /// The particle of the step before that the best one descends from
+    /// (its index then; `None` before the first step).
+    best_origin: Option<usize>,
     seed: u64,
     steps: u64,
     /// Share free-space updates of cells all see as free (see `MapConfig`).
@@ -292,6 +295,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             log_weights: vec![0.0; particles.len()],
             particles,
             best: 0,
+            best_origin: None,
             seed,
             steps: 0,
             shared_free_space: true,
@@ -513,6 +517,47 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         }
     }
 
+    /// The best particle's scan match for `scan` from the odometry motion
+    /// `odometry` (previous robot frame, since the last step), against its
+    /// own map view: the matched motion (same frame) fused with the motion
+    /// model, or `None` without a scan matcher or where the match fails. A
+    /// Mixture gives its most probable part. Leaves the filter unchanged:
+    /// for scans the filter skips ([`crate::config::FilterConfig::match_skipped`]).
+    pub fn match_best(&self, odometry: &P, scan: &Scan<D, P>) -> Option<P> {
+        let matcher = self.matcher.as_ref()?;
+        let best = self.particles.get(self.best)?;
+        // Before the first step, a field built here for the first
+        // particle (the only view there is) is reused the same way.
+        let origin = self.best_origin.unwrap_or(0);
+        let again = matcher.rematch(origin, &best.pose, odometry, scan);
+        let group = match self.tree.parent(best.node) {
+            crate::ancestry::NO_NODE => best.node,
+            parent => parent,
+        };
+        let proposal = match again {
+            Some(q) => q,
+            None => matcher
+                .propose(&MatchContext {
+                    map: &self.map,
+                    numbering: &self.numbering,
+                    groups: &[group],
+                    particles: std::slice::from_ref(best),
+                    odometry,
+                    scan,
+                })
+                .into_iter()
+                .next()?,
+        };
+        match proposal {
+            Proposal::Matched { delta, .. } => Some(delta),
+            Proposal::Mixture(parts) => parts
+                .into_iter()
+                .max_by(|a, b| a.0.total_cmp(&b.0))
+                .map(|part| part.1),
+            Proposal::Motion | Proposal::ScanMatched => None,
+        }
+    }
+
     /// Weigh: scores every sample against its parent particle's map view, in
     /// culling passes (quick, then full); culled samples get −∞.
     pub fn weigh(&self, samples: &[Sample<P>], scan: &Scan<D, P>) -> Weights {
@@ -682,6 +727,7 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
             },
         );
         (self.particles, self.best) = offspring(chosen, scores, nodes, |j| samples[j].pose);
+        self.best_origin = origins.get(self.best).copied();
         let mut parents: Vec<usize> = chosen.iter().map(|&j| samples[j].parent).collect();
         parents.dedup();
         parents.len()

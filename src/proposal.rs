@@ -80,6 +80,24 @@ pub struct MatchContext<'a, const D: usize, P: Pose<D>> {
 pub trait ScanRegistration<const D: usize, P: Pose<D>>: Send + Sync {
     /// One proposal per particle of `ctx.particles`, in order.
     fn propose(&self, ctx: &MatchContext<'_, D, P>) -> Vec<Proposal<P>>;
+
+    /// Registers `scan` for a particle now at `prev` (map frame) that
+    /// descends from particle `origin` of the last [`Self::propose`]
+    /// call, with the odometry motion `odometry` since (`prev`'s frame),
+    /// reusing what that call built for `origin`'s view (the map has since
+    /// gained one scan per particle, which this leaves out). `None` where
+    /// nothing can be reused (the caller then calls `propose`); otherwise
+    /// as one `propose` entry. The default reuses nothing.
+    fn rematch(
+        &self,
+        origin: usize,
+        prev: &P,
+        odometry: &P,
+        scan: &Scan<D, P>,
+    ) -> Option<Proposal<P>> {
+        let _ = (origin, prev, odometry, scan);
+        None
+    }
 }
 
 impl<P> Proposal<P> {

@@ -39,11 +39,13 @@ use crate::config::{FieldWeight, ScanMatchConfig};
 use crate::geometry::{Pose2, pose2, wrap_angle, xyt};
 use crate::motion_model::CdtModel;
 use crate::proposal::{MatchContext, Proposal, ScanRegistration};
+use crate::scan::Scan;
 use nalgebra::{DMatrix, Matrix2, Matrix3, Vector3};
 use rayon::prelude::*;
+use std::sync::{Arc, Mutex};
 
 /// The scan-matched proposal of the 2-D filter.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct ScanMatcher2d {
     cfg: ScanMatchConfig,
     motion: CdtModel,
@@ -53,6 +55,38 @@ pub struct ScanMatcher2d {
     /// the match's curvature is scaled to the likelihood the samples are
     /// weighed by.
     variance: f64,
+    /// The fields of the last [`ScanRegistration::propose`], for
+    /// [`ScanRegistration::rematch`]: building a field costs more than
+    /// many registrations against it.
+    last: Mutex<LastFields>,
+}
+
+/// The fields one [`ScanRegistration::propose`] call built: per particle of
+/// its context, the field of its view group.
+#[derive(Default)]
+struct LastFields {
+    of_particle: Vec<Option<Arc<Field>>>,
+}
+
+/// A particle's proposal and the field of its view group it was matched in.
+type Registered = (usize, Proposal<Pose2>, Arc<Field>);
+
+impl std::fmt::Debug for LastFields {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "LastFields({} particles)", self.of_particle.len())
+    }
+}
+
+impl Clone for ScanMatcher2d {
+    /// The same matcher, without the fields of the last call.
+    fn clone(&self) -> Self {
+        Self::new(
+            self.cfg.clone(),
+            self.motion.clone(),
+            self.cell,
+            self.variance,
+        )
+    }
 }
 
 impl ScanMatcher2d {
@@ -65,7 +99,38 @@ impl ScanMatcher2d {
             motion,
             cell,
             variance,
+            last: Mutex::new(LastFields::default()),
         }
+    }
+
+    /// The returns of `scan` in the robot frame (m), evenly thinned to at
+    /// most `scan_match.max_beams`, and how many returns there were.
+    fn endpoints(&self, scan: &Scan<2, Pose2>) -> (Vec<[f64; 2]>, usize) {
+        let returns: Vec<[f64; 2]> = scan
+            .beams
+            .iter()
+            .filter(|b| !b.no_return)
+            .map(|b| {
+                crate::geometry::Pose::transform_point(
+                    &scan.sensor,
+                    [b.dir[0] * b.range, b.dir[1] * b.range],
+                )
+            })
+            .collect();
+        let beams = returns.len();
+        let stride = returns.len().div_ceil(self.cfg.max_beams.max(1)).max(1);
+        (returns.into_iter().step_by(stride).collect(), beams)
+    }
+
+    /// The table of `ln(floor + (1 − floor)·q/255)` over the field's byte
+    /// values `q`.
+    fn log_table(&self) -> [f64; 256] {
+        let floor = self.cfg.floor.clamp(1e-6, 1.0);
+        let mut lut = [0.0f64; 256];
+        for (q, v) in lut.iter_mut().enumerate() {
+            *v = (floor + (1.0 - floor) * q as f64 / 255.0).ln();
+        }
+        lut
     }
 
     /// Edge of the finest field cell, m.
@@ -843,22 +908,9 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
     fn propose(&self, ctx: &MatchContext<'_, 2, Pose2>) -> Vec<Proposal<Pose2>> {
         let c = &self.cfg;
         let res = self.res();
-        let scan = ctx.scan;
-        // Endpoints in the robot frame, evenly thinned.
-        let returns: Vec<[f64; 2]> = scan
-            .beams
-            .iter()
-            .filter(|b| !b.no_return)
-            .map(|b| {
-                crate::geometry::Pose::transform_point(
-                    &scan.sensor,
-                    [b.dir[0] * b.range, b.dir[1] * b.range],
-                )
-            })
-            .collect();
-        let beams = returns.len();
-        let stride = returns.len().div_ceil(c.max_beams.max(1)).max(1);
-        let points: Vec<[f64; 2]> = returns.into_iter().step_by(stride).collect();
+        // What an earlier call built is out of date from here on.
+        self.last.lock().expect("not poisoned").of_particle.clear();
+        let (points, beams) = self.endpoints(ctx.scan);
         let n = ctx.particles.len();
         if points.is_empty() || n == 0 {
             return vec![Proposal::Motion; n];
@@ -984,12 +1036,8 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                 _ => None,
             })
             .collect();
-        let floor = c.floor.clamp(1e-6, 1.0);
-        let mut lut = [0.0f64; 256];
-        for (q, v) in lut.iter_mut().enumerate() {
-            *v = (floor + (1.0 - floor) * q as f64 / 255.0).ln();
-        }
-        let per_group: Vec<Vec<(usize, Proposal<Pose2>)>> = members
+        let lut = self.log_table();
+        let per_group: Vec<Vec<Registered>> = members
             .par_iter()
             .zip(boxes.par_iter())
             .map(|(m, &(lo, hi))| {
@@ -1016,7 +1064,7 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                         Some(([x, y], weight))
                     })
                     .collect();
-                let field = self.field(lo, hi, &occupied);
+                let field = Arc::new(self.field(lo, hi, &occupied));
                 // With `per_group`, one registration per group: its members
                 // share the view, and their guesses differ by their own last
                 // samples' spread (cm), inside the search window, so the
@@ -1065,16 +1113,56 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                             }
                         })
                         .unwrap_or(Proposal::Motion);
-                        (i, q)
+                        (i, q, field.clone())
                     })
                     .collect()
             })
             .collect();
         let mut out = vec![Proposal::Motion; n];
-        for (i, q) in per_group.into_iter().flatten() {
+        let mut fields = vec![None; n];
+        for (i, q, field) in per_group.into_iter().flatten() {
             out[i] = q;
+            fields[i] = Some(field);
         }
+        self.last.lock().expect("not poisoned").of_particle = fields;
         out
+    }
+
+    fn rematch(
+        &self,
+        origin: usize,
+        prev: &Pose2,
+        odometry: &Pose2,
+        scan: &Scan<2, Pose2>,
+    ) -> Option<Proposal<Pose2>> {
+        let field = self
+            .last
+            .lock()
+            .expect("not poisoned")
+            .of_particle
+            .get(origin)?
+            .clone()?;
+        let (points, beams) = self.endpoints(scan);
+        if points.is_empty() {
+            return Some(Proposal::Motion);
+        }
+        let prior = self
+            .cfg
+            .prior_in_search
+            .then(|| SearchPrior::new(&self.motion, prev, odometry))
+            .flatten();
+        let matched = self
+            .register(
+                &field,
+                &self.log_table(),
+                &points,
+                beams,
+                &(prev * odometry),
+                prior.as_ref(),
+            )
+            .filter(|r| r.overlap >= self.cfg.min_overlap)
+            .and_then(|r| self.fuse(prev, odometry, &r.mode, &r.info));
+        Some(matched.unwrap_or(Proposal::Motion))
     }
 }
 

@@ -317,3 +317,74 @@ fn configured_beam_angles_replace_the_logs_and_are_echoed() {
         "a wrong beam geometry fits worse: {bad} vs {good} m"
     );
 }
+
+#[test]
+fn skipped_scans_are_placed_by_their_match_not_by_bad_odometry() {
+    use dpslam::geometry::{Pose2, pose2, xyt};
+    // The simulator moves 0.2 m per scan: with 0.35 m between processed
+    // scans every second scan is skipped. The skipped scans' odometry is
+    // off by 5 cm and 1.7° (the processed scans' is the log's), as when a
+    // robot's odometry slips between the scans the filter processes.
+    let truth = read_tum(Path::new(SIM_TRUTH)).unwrap();
+    let run = |match_skipped: bool| {
+        let mut cfg = small_config();
+        cfg.filter.min_translation = 0.35;
+        cfg.filter.min_rotation = 0.5;
+        cfg.filter.match_skipped = match_skipped;
+        let mut slam = dpslam::slam::Slam2d::new(cfg).unwrap();
+        let mut skipped = Vec::new();
+        for (i, scan) in dpslam::io::log2d::open_log2d(Path::new(SIM_LOG))
+            .unwrap()
+            .take(120)
+            .enumerate()
+        {
+            let scan = scan.unwrap();
+            let odometry = match i % 2 {
+                1 => scan.odometry * pose2(0.04, -0.03, 0.03),
+                _ => scan.odometry,
+            };
+            let e = slam
+                .add_scan(scan.timestamp.unwrap(), odometry, &scan.as_ranges())
+                .unwrap();
+            if !e.processed {
+                skipped.push(i);
+            }
+        }
+        (slam.trajectory().unwrap(), skipped)
+    };
+    let (on, skipped_on) = run(true);
+    let (off, skipped_off) = run(false);
+    assert_eq!(skipped_on, skipped_off);
+    assert!(skipped_on.len() > 40, "{} skipped", skipped_on.len());
+    // Each skipped scan relative to the scan before it (processed), against
+    // the same relative motion in the truth: translation m, rotation rad.
+    let to_pose = |p: &dpslam::io::tum::Stamped| {
+        let t = p.pose.translation.vector;
+        pose2(t.x, t.y, p.pose.rotation.euler_angles().2)
+    };
+    let error = |rows: &[(f64, Pose2)]| {
+        let (mut dt, mut dr) = (0.0, 0.0);
+        for &i in &skipped_on {
+            let est = rows[i - 1].1.inverse() * rows[i].1;
+            let tru = to_pose(&truth[i - 1]).inverse() * to_pose(&truth[i]);
+            let (x, y, t) = xyt(&(tru.inverse() * est));
+            dt += x.hypot(y);
+            dr += t.abs();
+        }
+        let n = skipped_on.len() as f64;
+        (dt / n, dr / n)
+    };
+    let (t_on, r_on) = error(&on);
+    let (t_off, r_off) = error(&off);
+    // The match is fused with the motion model (the posterior of the two),
+    // which pulls it part of the way back towards the odometry: it mends
+    // the heading far more than the position.
+    assert!(
+        t_on < 0.75 * t_off && r_on < 0.5 * r_off,
+        "matched {t_on:.3} m {r_on:.4} rad, by odometry {t_off:.3} m {r_off:.4} rad"
+    );
+    // The processed scans' rows are the filter's, the same either way.
+    for i in (0..on.len()).filter(|i| !skipped_on.contains(i)) {
+        assert_eq!(on[i], off[i], "row {i}");
+    }
+}

@@ -181,6 +181,15 @@ impl Levels {
         }
     }
 
+    /// The best particle's scan match of a scan the filter skips (the flat
+    /// filter only: [`ParticleFilter::match_best`]).
+    fn match_best(&self, odometry: &Pose2, scan: &Scan<2, Pose2>) -> Option<Pose2> {
+        match self {
+            Levels::Flat(f) => f.match_best(odometry, scan),
+            Levels::Hierarchical(_) => None,
+        }
+    }
+
     fn best_pose(&self) -> Pose2 {
         match self {
             Levels::Flat(f) => f.particles()[f.best_index()].pose,
@@ -241,6 +250,10 @@ pub struct Slam2d {
     last_processed: Option<Pose2>,
     /// Per input scan: time (s) and odometry pose.
     stamps: Vec<(f64, Pose2)>,
+    /// Skipped scans placed by a scan match (`filter.match_skipped`): input
+    /// index and the matched motion from the last processed scan's pose
+    /// (its robot frame), in input order.
+    matched_skips: Vec<(usize, Pose2)>,
     stats: Vec<StepStats>,
     max_range: f64,
     beams_per_scan: usize,
@@ -265,6 +278,7 @@ impl Slam2d {
             levels: None,
             last_processed: None,
             stamps: Vec::new(),
+            matched_skips: Vec::new(),
             stats: Vec::new(),
             max_range: 0.0,
             beams_per_scan: 0,
@@ -328,20 +342,26 @@ impl Slam2d {
             (Some(levels), Some(odo0)) => {
                 let delta = odo0.inverse() * odometry;
                 let moved = moved_enough(&self.cfg.filter, &delta);
-                if moved {
+                let matching = self.cfg.filter.match_skipped
+                    && self.cfg.filter.proposal == ProposalKind::ScanMatched;
+                if moved || matching {
                     let scan = to_scan(
                         &reading,
                         self.mount,
                         self.cfg.laser.max_beams,
                         self.max_range,
                     );
-                    let input = StepInput {
-                        odometry: delta,
-                        proposal: proposal_of(&self.cfg),
-                        scan: &scan,
-                        index: index as u32,
-                    };
-                    self.stats.push(levels.step(&input));
+                    if moved {
+                        let input = StepInput {
+                            odometry: delta,
+                            proposal: proposal_of(&self.cfg),
+                            scan: &scan,
+                            index: index as u32,
+                        };
+                        self.stats.push(levels.step(&input));
+                    } else if let Some(matched) = levels.match_best(&delta, &scan) {
+                        self.matched_skips.push((index, matched));
+                    }
                 }
                 moved
             }
@@ -395,15 +415,18 @@ impl Slam2d {
         });
     }
 
-    /// The best pose now (map frame), carried by odometry past the last
-    /// processed scan.
+    /// The best pose now (map frame): past the last processed scan, by
+    /// this scan's match where it was matched, else by odometry.
     fn pose_now(&self) -> Pose2 {
         let (Some(levels), Some(odo0), Some(&(_, odo))) =
             (&self.levels, self.last_processed, self.stamps.last())
         else {
             return Pose2::identity();
         };
-        levels.best_pose() * (odo0.inverse() * odo)
+        match self.matched_skips.last() {
+            Some(&(i, matched)) if i + 1 == self.stamps.len() => levels.best_pose() * matched,
+            _ => levels.best_pose() * (odo0.inverse() * odo),
+        }
     }
 
     /// Ends the run: closes the open window of hierarchical SLAM (nothing
@@ -425,11 +448,12 @@ impl Slam2d {
     }
 
     /// The trajectory, one `(time s, pose)` row per input scan (map frame):
-    /// processed scans from the best particle, the others carried by
-    /// odometry from the last processed one.
+    /// processed scans from the best particle; the others by their scan
+    /// match from the last processed one (`filter.match_skipped`), or by
+    /// odometry from the processed scans on both sides.
     pub fn trajectory(&self) -> Result<Vec<(f64, Pose2)>> {
         let corrected = self.best_trajectory();
-        fill_trajectory(&self.stamps, &corrected)
+        fill_trajectory(&self.stamps, &corrected, &self.matched_skips)
     }
 
     /// The best particle's poses, one per processed scan.
