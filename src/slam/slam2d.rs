@@ -234,7 +234,9 @@ impl Levels {
 /// time ([`Slam2d::add_scan`]); it processes a scan when the robot moved at
 /// least `filter.min_translation` or turned `filter.min_rotation` since the
 /// last processed one (the first is always processed) and places the
-/// others by odometry. The map frame is the robot frame at the first scan.
+/// others by a scan match against the best particle's map
+/// (`filter.match_skipped`) or by odometry. The map frame is the robot
+/// frame at the first scan.
 pub struct Slam2d {
     cfg: Config,
     /// Laser pose in the robot frame.
