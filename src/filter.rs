@@ -455,14 +455,8 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         let motion = self.motion.as_ref();
         let per_particle: Option<Vec<Proposal<P>>> = match (proposal, &self.matcher) {
             (Proposal::ScanMatched, Some(m)) => {
-                let groups: Vec<NodeId> = self
-                    .particles
-                    .iter()
-                    .map(|p| match self.tree.parent(p.node) {
-                        crate::ancestry::NO_NODE => p.node,
-                        parent => parent,
-                    })
-                    .collect();
+                let groups: Vec<NodeId> =
+                    self.particles.iter().map(|p| self.view_group(p)).collect();
                 Some(m.propose(&MatchContext {
                     map: &self.map,
                     numbering: &self.numbering,
@@ -517,6 +511,16 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         }
     }
 
+    /// The key of `p`'s view group for a [`MatchContext`]: the parent of its
+    /// ancestry node (particles with the same parent see the same map but
+    /// for their own last observation), or the node itself at the root.
+    fn view_group(&self, p: &Particle<P>) -> NodeId {
+        match self.tree.parent(p.node) {
+            crate::ancestry::NO_NODE => p.node,
+            parent => parent,
+        }
+    }
+
     /// The best particle's scan match for `scan` from the odometry motion
     /// `odometry` (previous robot frame, since the last step), against its
     /// own map view: the matched motion (same frame) fused with the motion
@@ -529,18 +533,13 @@ impl<const D: usize, P: Pose<D>> ParticleFilter<D, P> {
         // Before the first step, a field built here for the first
         // particle (the only view there is) is reused the same way.
         let origin = self.best_origin.unwrap_or(0);
-        let again = matcher.rematch(origin, &best.pose, odometry, scan);
-        let group = match self.tree.parent(best.node) {
-            crate::ancestry::NO_NODE => best.node,
-            parent => parent,
-        };
-        let proposal = match again {
+        let proposal = match matcher.rematch(origin, &best.pose, odometry, scan) {
             Some(q) => q,
             None => matcher
                 .propose(&MatchContext {
                     map: &self.map,
                     numbering: &self.numbering,
-                    groups: &[group],
+                    groups: &[self.view_group(best)],
                     particles: std::slice::from_ref(best),
                     odometry,
                     scan,

@@ -59,6 +59,8 @@ pub struct ScanMatcher2d {
     /// [`ScanRegistration::rematch`]: building a field costs more than
     /// many registrations against it.
     last: Mutex<LastFields>,
+    /// `ln(floor + (1 − floor)·q/255)` over the field's byte values `q`.
+    log_field: [f64; 256],
 }
 
 /// The fields one [`ScanRegistration::propose`] call built: per particle of
@@ -94,12 +96,14 @@ impl ScanMatcher2d {
     /// `cell`-metre cells whose laser model has range-error variance
     /// `variance` (m²).
     pub fn new(cfg: ScanMatchConfig, motion: CdtModel, cell: f64, variance: f64) -> Self {
+        let cfg_floor = cfg.floor;
         Self {
             cfg,
             motion,
             cell,
             variance,
             last: Mutex::new(LastFields::default()),
+            log_field: log_table(cfg_floor),
         }
     }
 
@@ -122,15 +126,32 @@ impl ScanMatcher2d {
         (returns.into_iter().step_by(stride).collect(), beams)
     }
 
-    /// The table of `ln(floor + (1 − floor)·q/255)` over the field's byte
-    /// values `q`.
-    fn log_table(&self) -> [f64; 256] {
-        let floor = self.cfg.floor.clamp(1e-6, 1.0);
-        let mut lut = [0.0f64; 256];
-        for (q, v) in lut.iter_mut().enumerate() {
-            *v = (floor + (1.0 - floor) * q as f64 / 255.0).ln();
-        }
-        lut
+    /// Registers `points` (of a scan of `beams` returns) against `field`
+    /// from the guess `prev · odometry`, ranking the search's candidates
+    /// with the motion prior where `prior_in_search`; `None` where the match
+    /// fails or too few endpoints land on seen cells (`min_overlap`).
+    fn register_from(
+        &self,
+        field: &Field,
+        points: &[[f64; 2]],
+        beams: usize,
+        prev: &Pose2,
+        odometry: &Pose2,
+    ) -> Option<Match> {
+        let prior = self
+            .cfg
+            .prior_in_search
+            .then(|| SearchPrior::new(&self.motion, prev, odometry))
+            .flatten();
+        self.register(
+            field,
+            &self.log_field,
+            points,
+            beams,
+            &(prev * odometry),
+            prior.as_ref(),
+        )
+        .filter(|r| r.overlap >= self.cfg.min_overlap)
     }
 
     /// Edge of the finest field cell, m.
@@ -151,6 +172,17 @@ impl ScanMatcher2d {
             occupied,
         )
     }
+}
+
+/// `ln(floor + (1 − floor)·q/255)` over the field's byte values `q`, the
+/// floor clamped to [1e-6, 1].
+fn log_table(floor: f64) -> [f64; 256] {
+    let floor = floor.clamp(1e-6, 1.0);
+    let mut lut = [0.0f64; 256];
+    for (q, v) in lut.iter_mut().enumerate() {
+        *v = (floor + (1.0 - floor) * q as f64 / 255.0).ln();
+    }
+    lut
 }
 
 /// A likelihood field over a box of the map frame.
@@ -1036,7 +1068,6 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                 _ => None,
             })
             .collect();
-        let lut = self.log_table();
         let per_group: Vec<Vec<Registered>> = members
             .par_iter()
             .zip(boxes.par_iter())
@@ -1071,26 +1102,14 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                 // map-frame mode and its information are the group's; each
                 // member fuses them with its own motion prior. Otherwise
                 // each member registers from its own guess.
-                let prior = |i: usize| {
-                    c.prior_in_search
-                        .then(|| {
-                            SearchPrior::new(&self.motion, &ctx.particles[i].pose, ctx.odometry)
-                        })
-                        .flatten()
-                };
                 let shared = c.per_group.then(|| {
-                    let p = prior(m[0]);
-                    self.register(&field, &lut, &points, beams, &guesses[m[0]], p.as_ref())
-                        .filter(|r| r.overlap >= c.min_overlap)
+                    let first = &ctx.particles[m[0]].pose;
+                    self.register_from(&field, &points, beams, first, ctx.odometry)
                 });
                 m.iter()
                     .map(|&i| {
                         let prev = &ctx.particles[i].pose;
-                        let own = || {
-                            let p = prior(i);
-                            self.register(&field, &lut, &points, beams, &guesses[i], p.as_ref())
-                                .filter(|r| r.overlap >= c.min_overlap)
-                        };
+                        let own = || self.register_from(&field, &points, beams, prev, ctx.odometry);
                         let q = match &shared {
                             Some(r) => r
                                 .as_ref()
@@ -1146,21 +1165,8 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
         if points.is_empty() {
             return Some(Proposal::Motion);
         }
-        let prior = self
-            .cfg
-            .prior_in_search
-            .then(|| SearchPrior::new(&self.motion, prev, odometry))
-            .flatten();
         let matched = self
-            .register(
-                &field,
-                &self.log_table(),
-                &points,
-                beams,
-                &(prev * odometry),
-                prior.as_ref(),
-            )
-            .filter(|r| r.overlap >= self.cfg.min_overlap)
+            .register_from(&field, &points, beams, prev, odometry)
             .and_then(|r| self.fuse(prev, odometry, &r.mode, &r.info));
         Some(matched.unwrap_or(Proposal::Motion))
     }
@@ -1226,14 +1232,6 @@ mod tests {
         (walls, points)
     }
 
-    fn lut(floor: f64) -> [f64; 256] {
-        let mut lut = [0.0; 256];
-        for (q, v) in lut.iter_mut().enumerate() {
-            *v = (floor + (1.0 - floor) * q as f64 / 255.0).ln();
-        }
-        lut
-    }
-
     #[test]
     fn a_slip_of_40_cm_and_12_degrees_is_found_to_a_few_centimetres() {
         let m = matcher();
@@ -1243,14 +1241,7 @@ mod tests {
         // The odometry guess is off by 0.4 m, −0.3 m and 12°.
         let guess = pose2(2.9, 1.5, 0.3 + 12f64.to_radians());
         let r = m
-            .register(
-                &field,
-                &lut(m.cfg.floor),
-                &points,
-                points.len(),
-                &guess,
-                None,
-            )
+            .register(&field, &m.log_field, &points, points.len(), &guess, None)
             .unwrap();
         let (mode, overlap) = (r.mode, r.overlap);
         let cov = r.info.try_inverse().unwrap();
@@ -1288,7 +1279,7 @@ mod tests {
         let field = m.field([-2.0, -2.0], [8.0, 6.0], &both);
         let odometry = pose2(0.5, 0.0, 0.0);
         let prev = truth * odometry.inverse();
-        let lut = lut(m.cfg.floor);
+        let lut = m.log_field;
         let far = m
             .register(&field, &lut, &points, points.len(), &truth, None)
             .unwrap();
@@ -1358,14 +1349,7 @@ mod tests {
             // holds both the post pattern at x = 0 and a copy 0.5 m away.
             let guess = pose2(prior_x, 1.0, 0.0);
             let r = m
-                .register(
-                    &field,
-                    &lut(m.cfg.floor),
-                    &points,
-                    180,
-                    &guess,
-                    Some(&prior),
-                )
+                .register(&field, &m.log_field, &points, 180, &guess, Some(&prior))
                 .unwrap();
             let x = r.mode.translation.x;
             assert!(
@@ -1396,7 +1380,7 @@ mod tests {
         let guess = pose2(0.0, 1.1, 0.0);
         // The 60 endpoints thinned from a scan of 180 returns.
         let r = m
-            .register(&field, &lut(m.cfg.floor), &points, 180, &guess, None)
+            .register(&field, &m.log_field, &points, 180, &guess, None)
             .unwrap();
         let (mode, info) = (r.mode, r.info);
         assert!((mode.translation.y - 1.0).abs() < 0.03, "{mode:?}");
@@ -1501,7 +1485,7 @@ mod tests {
         let mode_x = |walls: &Walls| {
             let field = m.field([-22.0, -4.0], [22.0, 6.0], walls);
             let r = m
-                .register(&field, &lut(m.cfg.floor), &points, 180, &guess, None)
+                .register(&field, &m.log_field, &points, 180, &guess, None)
                 .unwrap();
             (r.mode.translation.x, r.info[(0, 0)])
         };

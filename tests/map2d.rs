@@ -358,10 +358,7 @@ fn skipped_scans_are_placed_by_their_match_not_by_bad_odometry() {
     assert!(skipped_on.len() > 40, "{} skipped", skipped_on.len());
     // Each skipped scan relative to the scan before it (processed), against
     // the same relative motion in the truth: translation m, rotation rad.
-    let to_pose = |p: &dpslam::io::tum::Stamped| {
-        let t = p.pose.translation.vector;
-        pose2(t.x, t.y, p.pose.rotation.euler_angles().2)
-    };
+    let to_pose = |p: &dpslam::io::tum::Stamped| dpslam::io::odometry::planar(&p.pose);
     let error = |rows: &[(f64, Pose2)]| {
         let (mut dt, mut dr) = (0.0, 0.0);
         for &i in &skipped_on {
