@@ -2,8 +2,9 @@
 //! embedded simulated loop by default), hand each laser scan and its
 //! odometry pose to [`Slam2d::add_scan`], print the online estimate as it
 //! goes (stderr), and at the end the whole corrected trajectory in TUM form
-//! (stdout), which equals `dpslam map2d`'s `trajectory.tum` for the same log
-//! and seed.
+//! (stdout), which equals `dpslam map2d`'s `trajectory_filter.tum` for the
+//! same log and seed (its `trajectory.tum` is that trajectory after the
+//! final alignment, [`dpslam::refine`]).
 //!
 //! ```sh
 //! cargo run --release --example online2d > trajectory.tum

@@ -39,6 +39,42 @@ pub struct Config {
     pub bag: crate::io::bag::scans2d::TopicChoice,
     /// How 2-D inputs are read beyond their topics.
     pub input: InputConfig,
+    /// The 2-D trajectory's final alignment against the run's own map
+    /// ([`crate::refine`]).
+    pub refine: RefineConfig,
+}
+
+/// The 2-D trajectory's refinement against the map of the whole run
+/// ([`crate::refine`]): after the filter, every scan is re-aligned, from
+/// its pose, to a likelihood field of the hits of all scans at their poses.
+/// Lengths in metres.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RefineConfig {
+    /// Alignment passes, each against the map of the last pass's poses
+    /// (0 = off: `trajectory.tum` is the filter's own).
+    pub passes: usize,
+    /// Cell of the hit grid and the likelihood field, m.
+    pub resolution: f64,
+    /// Std of the field around an occupied cell, m.
+    pub sigma: f64,
+    /// Hits a cell needs to count as occupied (1 lets single stray returns
+    /// and moving people pull the alignment).
+    pub min_hits: u32,
+    /// Likelihood of an endpoint far from anything occupied, 0..1.
+    pub floor: f64,
+}
+
+impl Default for RefineConfig {
+    fn default() -> Self {
+        Self {
+            passes: 2,
+            resolution: 0.05,
+            sigma: 0.05,
+            min_hits: 2,
+            floor: 0.1,
+        }
+    }
 }
 
 /// How 2-D inputs are read (`[input]`).
@@ -665,6 +701,7 @@ impl Default for Config {
             gpu: GpuConfig::default(),
             bag: Default::default(),
             input: Default::default(),
+            refine: RefineConfig::default(),
         }
     }
 }
@@ -852,6 +889,21 @@ impl Config {
         )?;
         if h.variance <= 0.0 {
             return bad("hierarchy.variance must be positive");
+        }
+        let r = &self.refine;
+        let pos = |v: f64| v.is_finite() && v > 0.0;
+        if !(pos(r.resolution)
+            && pos(r.sigma)
+            && r.floor.is_finite()
+            && r.floor > 0.0
+            && r.floor < 1.0)
+        {
+            return bad(
+                "refine.resolution and refine.sigma must be positive, refine.floor in (0, 1)",
+            );
+        }
+        if r.min_hits == 0 {
+            return bad("refine.min_hits must be at least 1");
         }
         let m = &self.motion_learning;
         check_values(

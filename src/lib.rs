@@ -35,6 +35,7 @@ pub mod pipeline;
 pub mod points;
 pub mod proposal;
 pub mod raycast;
+pub mod refine;
 pub mod scan;
 pub mod scan_match;
 pub mod scorer;

@@ -71,6 +71,63 @@ fn simulated_prefix_maps_with_all_outputs_and_small_ate() {
 }
 
 #[test]
+fn the_final_alignment_lowers_the_scan_to_scan_error_and_keeps_the_filter_s_poses_beside() {
+    use dpslam::geometry::xyt;
+    use dpslam::io::odometry::planar;
+    let dir = tempfile::tempdir().unwrap();
+    let log = prefix(SIM_LOG, 250, dir.path(), "sim.clf");
+    let out = dir.path().join("run");
+    let s = run_map2d(&log, &out, &small_config()).unwrap();
+    let refined = read_tum(&out.join("trajectory.tum")).unwrap();
+    let filter = read_tum(&out.join("trajectory_filter.tum")).unwrap();
+    assert_eq!(refined.len(), filter.len());
+    assert!(refined.iter().zip(&filter).all(|(a, b)| a.t == b.t));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(json["refine"]["passes"], small_config().refine.passes);
+    assert!(json["refine"]["moved_median_m"].as_f64().unwrap() > 0.0);
+    assert_eq!(s.scans, refined.len());
+    // Each scan relative to the one before it, against the same motion in
+    // the truth: the mean translation error, m.
+    let truth = read_tum(Path::new(SIM_TRUTH)).unwrap();
+    let step_error = |rows: &[dpslam::io::tum::Stamped]| {
+        let sum: f64 = (1..rows.len())
+            .map(|i| {
+                let est = planar(&rows[i - 1].pose).inverse() * planar(&rows[i].pose);
+                let tru = planar(&truth[i - 1].pose).inverse() * planar(&truth[i].pose);
+                let (x, y, _) = xyt(&(tru.inverse() * est));
+                x.hypot(y)
+            })
+            .sum();
+        sum / (rows.len() - 1) as f64
+    };
+    let (e_filter, e_refined) = (step_error(&filter), step_error(&refined));
+    assert!(
+        e_refined < 0.5 * e_filter,
+        "scan to scan: refined {e_refined:.4} m, filter {e_filter:.4} m"
+    );
+    // The global shape stays the filter's.
+    let ate = |rows| {
+        evaluate_ate(&truth, rows, &AteOptions::default())
+            .unwrap()
+            .rmse_m
+    };
+    let (a_filter, a_refined) = (ate(&filter), ate(&refined));
+    assert!(
+        a_refined < a_filter + 0.005,
+        "ATE: refined {a_refined:.4} m, filter {a_filter:.4} m"
+    );
+    // Off, there is one trajectory and no stale filter trajectory.
+    let mut off = small_config();
+    off.refine.passes = 0;
+    let s = run_map2d(&log, &out, &off).unwrap();
+    assert!(!out.join("trajectory_filter.tum").exists());
+    let rows = read_tum(&out.join("trajectory.tum")).unwrap();
+    assert_eq!(rows.len(), s.scans);
+    assert!(rows.iter().zip(&filter).all(|(a, b)| a.pose == b.pose));
+}
+
+#[test]
 fn same_seed_same_trajectory_whatever_the_thread_count() {
     let dir = tempfile::tempdir().unwrap();
     let log = prefix(SIM_LOG, 120, dir.path(), "sim.clf");

@@ -12,7 +12,7 @@ use crate::scan::LaserScan2d;
 use crate::slam::Slam2d;
 use crate::slam::slam2d::{DEFAULT_RANGE_CAP, RANGE_SHARE, usable_range};
 use crate::{Error, Result};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -111,6 +111,26 @@ pub struct Map2dSummary {
     pub seed: u64,
     /// Worker threads.
     pub threads: usize,
+    /// What the final alignment against the run's own map did (`refine`;
+    /// absent with `refine.passes = 0`). `trajectory.tum` then holds the
+    /// refined poses and `trajectory_filter.tum` the filter's own.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refine: Option<RefineSummary>,
+}
+
+/// What [`refine_trajectory2d`] did, for `run.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RefineSummary {
+    /// Passes run (`refine.passes`).
+    pub passes: usize,
+    /// Median of how far a scan moved, m.
+    pub moved_median_m: f64,
+    /// Largest move of a scan, m.
+    pub moved_max_m: f64,
+    /// Median heading change of a scan, degrees.
+    pub turned_median_deg: f64,
+    /// Wall time of the refinement, s (part of `wall_time_s`).
+    pub time_s: f64,
 }
 
 /// How a log's readings sit against its declared maximum range, from one
@@ -324,6 +344,34 @@ impl RangeSettings {
     }
 }
 
+/// Re-aligns `poses` (the filter's trajectory of `log`, one per scan, robot
+/// poses in the map frame) against the map of all of the log's scans at
+/// those poses ([`crate::refine`], `cfg.refine`), reading the log again
+/// once per map and once per alignment of each pass. The scans are read as
+/// the run read them: the same reader settings, laser mount, "no return"
+/// threshold (`ranges`) and usable range `max_range` (m), every return kept
+/// (no thinning).
+pub fn refine_trajectory2d(
+    log: &Path,
+    cfg: &Config,
+    ranges: &RangeSettings,
+    max_range: f64,
+    poses: &[Pose2],
+) -> Result<crate::refine::Refined> {
+    let no_return_at = ranges.no_return_at;
+    let open = || -> Result<_> {
+        let reader = open_configured(log, cfg)?;
+        let mount = sensor_mount_of(cfg, &reader);
+        Ok(reader.map(move |item| {
+            let s = item?;
+            let reading = s.as_ranges().with_no_return_at(no_return_at);
+            let scan = crate::slam::slam2d::to_scan(&reading, mount, usize::MAX, max_range);
+            Ok(crate::refine::robot_points(&scan))
+        }))
+    };
+    crate::refine::refine_poses(&cfg.refine, poses, open)
+}
+
 /// Runs 2-D DP-SLAM on `log` and writes the run folder `out`.
 pub fn run_map2d(log: &Path, out: &Path, cfg: &Config) -> Result<Map2dSummary> {
     run_map2d_with(log, out, cfg, crate::backend::Backend::Cpu)
@@ -441,12 +489,33 @@ pub fn run_map2d_observed(
 ) -> Result<Map2dSummary> {
     let start = Instant::now();
     let run = run_filter2d_observed(log, cfg, backend, ranges, progress)?;
-    let rows: Vec<(f64, [f64; 7])> = run
-        .slam
-        .trajectory()?
-        .into_iter()
-        .map(|(t, p)| (t, Pose::<2>::to_tum(&p)))
-        .collect();
+    let trajectory = run.slam.trajectory()?;
+    let tum = |rows: &[(f64, Pose2)]| -> Vec<(f64, [f64; 7])> {
+        rows.iter()
+            .map(|(t, p)| (*t, Pose::<2>::to_tum(p)))
+            .collect()
+    };
+    let filter_rows = tum(&trajectory);
+    let (rows, refine) = if cfg.refine.passes > 0 {
+        let began = Instant::now();
+        let poses: Vec<Pose2> = trajectory.iter().map(|r| r.1).collect();
+        let refined = refine_trajectory2d(log, cfg, ranges, run.slam.max_range(), &poses)?;
+        let rows: Vec<(f64, Pose2)> = trajectory
+            .iter()
+            .zip(&refined.poses)
+            .map(|(r, p)| (r.0, *p))
+            .collect();
+        let summary = RefineSummary {
+            passes: cfg.refine.passes,
+            moved_median_m: refined.moved_median_m,
+            moved_max_m: refined.moved_max_m,
+            turned_median_deg: refined.turned_median_rad.to_degrees(),
+            time_s: began.elapsed().as_secs_f64(),
+        };
+        (tum(&rows), Some(summary))
+    } else {
+        (filter_rows.clone(), None)
+    };
     let FilterRun2d {
         slam,
         format,
@@ -494,11 +563,19 @@ pub fn run_map2d_observed(
         warnings,
         seed: cfg.seed,
         threads: rayon::current_num_threads(),
+        refine,
     };
 
     super::create_out_dir(out)?;
     write_map(out, "map", &raster)?;
     write_tum(&out.join("trajectory.tum"), &rows)?;
+    let filter_path = out.join("trajectory_filter.tum");
+    if summary.refine.is_some() {
+        write_tum(&filter_path, &filter_rows)?;
+    } else if filter_path.exists() {
+        // A run folder reused from a refined run must not keep a stale one.
+        std::fs::remove_file(&filter_path).map_err(|e| Error::io(&filter_path, e))?;
+    }
     super::write_atomic(&out.join("config.toml"), cfg.to_toml().as_bytes())?;
     super::write_json(&out.join("run.json"), &summary)?;
     Ok(summary)
