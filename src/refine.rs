@@ -24,6 +24,7 @@
 use crate::config::RefineConfig;
 use crate::geometry::{Pose, Pose2, pose2, xyt};
 use crate::scan::Scan;
+use crate::scan_match::bilinear;
 use crate::{Error, Result};
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
@@ -254,20 +255,15 @@ impl LogField {
     /// The field at map point `(x, y)`, bilinear between cell centres.
     #[inline]
     fn at(&self, x: f64, y: f64) -> f64 {
-        let u = (x - self.origin[0]) / self.res - 0.5;
-        let v = (y - self.origin[1]) / self.res - 0.5;
-        let (fi, fj) = (u.floor(), v.floor());
-        let (fu, fv) = (u - fi, v - fj);
-        let (i0, j0) = (fi as isize, fj as isize);
-        let cell = |i: isize, j: isize| -> f64 {
-            if i < 0 || j < 0 || i >= self.w as isize || j >= self.h as isize {
-                self.far
-            } else {
-                self.values[j as usize * self.w + i as usize] as f64
-            }
-        };
-        (1.0 - fv) * ((1.0 - fu) * cell(i0, j0) + fu * cell(i0 + 1, j0))
-            + fv * ((1.0 - fu) * cell(i0, j0 + 1) + fu * cell(i0 + 1, j0 + 1))
+        bilinear(
+            self.origin,
+            self.res,
+            [self.w, self.h],
+            self.far,
+            x,
+            y,
+            |k| self.values[k] as f64,
+        )
     }
 
     /// The summed field of `points` (robot frame, m) at map pose `[x, y, θ]`.

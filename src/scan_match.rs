@@ -303,25 +303,45 @@ impl Field {
     }
 }
 
+/// Bilinear interpolation between the cell centres of a row-major grid of
+/// `size` cells of `res` m whose cell (0, 0) has its corner at `origin`
+/// (map frame, m): `value(k)` is cell `k`'s sample, `outside` stands for
+/// the cells beyond the grid. Shared by the matcher's fields and the final
+/// alignment's ([`crate::refine`]).
+#[inline]
+pub(crate) fn bilinear(
+    origin: [f64; 2],
+    res: f64,
+    size: [usize; 2],
+    outside: f64,
+    x: f64,
+    y: f64,
+    value: impl Fn(usize) -> f64,
+) -> f64 {
+    let u = (x - origin[0]) / res - 0.5;
+    let v = (y - origin[1]) / res - 0.5;
+    let (fi, fj) = (u.floor(), v.floor());
+    let (fu, fv) = (u - fi, v - fj);
+    let (i0, j0) = (fi as isize, fj as isize);
+    let at = |i: isize, j: isize| -> f64 {
+        if i < 0 || j < 0 || i >= size[0] as isize || j >= size[1] as isize {
+            outside
+        } else {
+            value(j as usize * size[0] + i as usize)
+        }
+    };
+    (1.0 - fv) * ((1.0 - fu) * at(i0, j0) + fu * at(i0 + 1, j0))
+        + fv * ((1.0 - fu) * at(i0, j0 + 1) + fu * at(i0 + 1, j0 + 1))
+}
+
 impl Field {
     /// The field at map point `(x, y)`, bilinear between cell centres, on
     /// the 0..=255 scale (0 outside).
     #[inline]
     fn interp(&self, x: f64, y: f64) -> f64 {
-        let u = (x - self.origin[0]) / self.res - 0.5;
-        let v = (y - self.origin[1]) / self.res - 0.5;
-        let (fi, fj) = (u.floor(), v.floor());
-        let (fu, fv) = (u - fi, v - fj);
-        let (i0, j0) = (fi as isize, fj as isize);
-        let at = |i: isize, j: isize| -> f64 {
-            if i < 0 || j < 0 || i >= self.w as isize || j >= self.h as isize {
-                0.0
-            } else {
-                self.fine[j as usize * self.w + i as usize] as f64
-            }
-        };
-        (1.0 - fv) * ((1.0 - fu) * at(i0, j0) + fu * at(i0 + 1, j0))
-            + fv * ((1.0 - fu) * at(i0, j0 + 1) + fu * at(i0 + 1, j0 + 1))
+        bilinear(self.origin, self.res, [self.w, self.h], 0.0, x, y, |k| {
+            self.fine[k] as f64
+        })
     }
 
     /// The smooth score of `points` (robot frame) at map pose `[x, y, θ]`:
