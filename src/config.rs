@@ -891,16 +891,13 @@ impl Config {
             return bad("hierarchy.variance must be positive");
         }
         let r = &self.refine;
-        let pos = |v: f64| v.is_finite() && v > 0.0;
-        if !(pos(r.resolution)
-            && pos(r.sigma)
-            && r.floor.is_finite()
-            && r.floor > 0.0
-            && r.floor < 1.0)
-        {
-            return bad(
-                "refine.resolution and refine.sigma must be positive, refine.floor in (0, 1)",
-            );
+        check_values(
+            "refine",
+            &[("resolution", r.resolution), ("sigma", r.sigma)],
+            false,
+        )?;
+        if !(r.floor > 0.0 && r.floor < 1.0) {
+            return bad("refine.floor must be in (0, 1)");
         }
         if r.min_hits == 0 {
             return bad("refine.min_hits must be at least 1");

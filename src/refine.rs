@@ -23,7 +23,6 @@
 
 use crate::config::RefineConfig;
 use crate::geometry::{Pose, Pose2, pose2, xyt};
-use crate::scan::Scan;
 use crate::scan_match::bilinear;
 use crate::{Error, Result};
 use rayon::prelude::*;
@@ -55,21 +54,11 @@ pub struct Refined {
     pub turned_median_rad: f64,
 }
 
-/// The returns of `scan` as robot-frame points (m): its beams that hit
-/// something, through the laser's mount `scan.sensor`.
-pub fn robot_points(scan: &Scan<2, Pose2>) -> Vec<[f64; 2]> {
-    scan.beams
-        .iter()
-        .filter(|b| !b.no_return && b.range.is_finite())
-        .map(|b| Pose::transform_point(&scan.sensor, [b.dir[0] * b.range, b.dir[1] * b.range]))
-        .collect()
-}
-
 /// Re-aligns every scan to the map of all scans, `cfg.passes` times.
 ///
 /// `poses` are the robot's poses (map frame), one per scan. `scans` opens
 /// the scans anew, in the same order, each as its robot-frame endpoints
-/// (m, [`robot_points`]); it is called twice per pass (to build the map,
+/// (m, [`Scan::returns_in_robot_frame`](crate::scan::Scan::returns_in_robot_frame)); it is called twice per pass (to build the map,
 /// then to align), so memory does not grow with the log. The result is the
 /// same for any thread count.
 pub fn refine_poses<I>(
@@ -201,7 +190,7 @@ fn cell_of(p: [f64; 2], res: f64) -> [i32; 2] {
 
 /// The log-likelihood of an endpoint over a box of the map frame:
 /// `ln(floor + (1 − floor)·exp(−d²/2σ²))`, `d` the distance to the nearest
-/// occupied cell centre. Kept in `f32`, not quantised as the proposal's
+/// occupied cell's point (the mean of its endpoints). Kept in `f32`, not quantised as the proposal's
 /// field is: the climb resolves millimetres, where a byte per cell leaves
 /// the peak flat.
 struct LogField {

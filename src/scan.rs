@@ -28,6 +28,21 @@ pub struct Scan<const D: usize, P: Pose<D>> {
     pub beams: Vec<Beam<D>>,
 }
 
+impl<const D: usize, P: Pose<D>> Scan<D, P> {
+    /// The endpoints of the beams that hit something (not `no_return`), in
+    /// the robot frame (m): through the sensor's mount.
+    pub fn returns_in_robot_frame(&self) -> Vec<[f64; D]> {
+        self.beams
+            .iter()
+            .filter(|b| !b.no_return)
+            .map(|b| {
+                self.sensor
+                    .transform_point(std::array::from_fn(|k| b.dir[k] * b.range))
+            })
+            .collect()
+    }
+}
+
 /// A 2-D laser reading as it comes from a log, before beam selection.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LaserScan2d {

@@ -110,17 +110,7 @@ impl ScanMatcher2d {
     /// The returns of `scan` in the robot frame (m), evenly thinned to at
     /// most `scan_match.max_beams`, and how many returns there were.
     fn endpoints(&self, scan: &Scan<2, Pose2>) -> (Vec<[f64; 2]>, usize) {
-        let returns: Vec<[f64; 2]> = scan
-            .beams
-            .iter()
-            .filter(|b| !b.no_return)
-            .map(|b| {
-                crate::geometry::Pose::transform_point(
-                    &scan.sensor,
-                    [b.dir[0] * b.range, b.dir[1] * b.range],
-                )
-            })
-            .collect();
+        let returns = scan.returns_in_robot_frame();
         let beams = returns.len();
         let stride = returns.len().div_ceil(self.cfg.max_beams.max(1)).max(1);
         (returns.into_iter().step_by(stride).collect(), beams)

@@ -366,7 +366,7 @@ pub fn refine_trajectory2d(
             let s = item?;
             let reading = s.as_ranges().with_no_return_at(no_return_at);
             let scan = crate::slam::slam2d::to_scan(&reading, mount, usize::MAX, max_range);
-            Ok(crate::refine::robot_points(&scan))
+            Ok(scan.returns_in_robot_frame())
         }))
     };
     crate::refine::refine_poses(&cfg.refine, poses, open)
@@ -495,8 +495,8 @@ pub fn run_map2d_observed(
             .map(|(t, p)| (*t, Pose::<2>::to_tum(p)))
             .collect()
     };
-    let filter_rows = tum(&trajectory);
-    let (rows, refine) = if cfg.refine.passes > 0 {
+    // The refined rows and what the refinement did, where it runs.
+    let (refined_rows, refine) = if cfg.refine.passes > 0 {
         let began = Instant::now();
         let poses: Vec<Pose2> = trajectory.iter().map(|r| r.1).collect();
         let refined = refine_trajectory2d(log, cfg, ranges, run.slam.max_range(), &poses)?;
@@ -512,9 +512,9 @@ pub fn run_map2d_observed(
             turned_median_deg: refined.turned_median_rad.to_degrees(),
             time_s: began.elapsed().as_secs_f64(),
         };
-        (tum(&rows), Some(summary))
+        (Some(tum(&rows)), Some(summary))
     } else {
-        (filter_rows.clone(), None)
+        (None, None)
     };
     let FilterRun2d {
         slam,
@@ -568,13 +568,20 @@ pub fn run_map2d_observed(
 
     super::create_out_dir(out)?;
     write_map(out, "map", &raster)?;
-    write_tum(&out.join("trajectory.tum"), &rows)?;
+    let filter_rows = tum(&trajectory);
     let filter_path = out.join("trajectory_filter.tum");
-    if summary.refine.is_some() {
-        write_tum(&filter_path, &filter_rows)?;
-    } else if filter_path.exists() {
-        // A run folder reused from a refined run must not keep a stale one.
-        std::fs::remove_file(&filter_path).map_err(|e| Error::io(&filter_path, e))?;
+    match &refined_rows {
+        Some(rows) => {
+            write_tum(&out.join("trajectory.tum"), rows)?;
+            write_tum(&filter_path, &filter_rows)?;
+        }
+        None => {
+            write_tum(&out.join("trajectory.tum"), &filter_rows)?;
+            // A run folder reused from a refined run must not keep a stale one.
+            if filter_path.exists() {
+                std::fs::remove_file(&filter_path).map_err(|e| Error::io(&filter_path, e))?;
+            }
+        }
     }
     super::write_atomic(&out.join("config.toml"), cfg.to_toml().as_bytes())?;
     super::write_json(&out.join("run.json"), &summary)?;
