@@ -1116,9 +1116,16 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                     let first = &ctx.particles[m[0]].pose;
                     self.register_from(&field, &points, beams, first, ctx.odometry)
                 });
+                // Resampled copies of one sample share its node and pose, so
+                // their proposals are the same: each is computed once.
+                let mut known: Vec<([u64; 4], Proposal<Pose2>)> = Vec::new();
                 m.iter()
                     .map(|&i| {
                         let prev = &ctx.particles[i].pose;
+                        let key = pose_bits(prev);
+                        if let Some((_, q)) = known.iter().find(|(k, _)| *k == key) {
+                            return (i, q.clone(), field.clone());
+                        }
                         let own = || self.register_from(&field, &points, beams, prev, ctx.odometry);
                         let q = match &shared {
                             Some(r) => r
@@ -1142,6 +1149,7 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                             }
                         })
                         .unwrap_or(Proposal::Motion);
+                        known.push((key, q.clone()));
                         (i, q, field.clone())
                     })
                     .collect()
@@ -1180,6 +1188,16 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
             .and_then(|r| self.fuse(prev, odometry, &r.mode, &r.info));
         Some(matched.unwrap_or(Proposal::Motion))
     }
+}
+
+/// A pose's exact bit pattern: equal keys, equal poses.
+fn pose_bits(p: &Pose2) -> [u64; 4] {
+    [
+        p.translation.x.to_bits(),
+        p.translation.y.to_bits(),
+        p.rotation.re.to_bits(),
+        p.rotation.im.to_bits(),
+    ]
 }
 
 #[cfg(test)]
