@@ -623,6 +623,23 @@ pub struct LaserConfig {
     pub max_range: f64,
     /// Use at most this many beams per scan, evenly spaced (release: 180).
     pub max_beams: usize,
+    /// Surface fill, m (0: off, the default and the release's update; 0.5
+    /// tried in session 28, docs/CONFIG.md). A 2-D scan samples a
+    /// wall at one endpoint per beam, far apart where the wall is far or
+    /// seen at a grazing angle, and a wall cell between two samples then
+    /// holds no hit and lets every later beam through. Where two
+    /// consecutive returns lie at most this far apart on one straight
+    /// surface (see `surface_fill_tolerance`), the map update also adds one
+    /// hit to each cell between them. Without it the likelihood of a scan
+    /// in a featureless corridor peaks where the earlier scans were taken,
+    /// not at the true pose (docs/PROPOSAL-2D.md, session 28). 3-D sweeps
+    /// are not scan lines and never fill.
+    pub surface_fill_gap: f64,
+    /// Surface fill needs the returns before and after the pair to lie
+    /// within this distance (m) of the line through the pair, so that it
+    /// does not bridge a doorway or two objects; pairs at most two cells
+    /// apart fill without that test.
+    pub surface_fill_tolerance: f64,
     /// Keep the log's declared maximum range (its "no return" threshold)
     /// even where the readings contradict it. By default (false) a log whose
     /// readings lie, for ≥ 1 % of them, clearly between the declared maximum
@@ -748,6 +765,8 @@ impl Default for LaserConfig {
             quick_after_cells: 3.0,
             max_range: 0.0,
             max_beams: 181,
+            surface_fill_gap: 0.0,
+            surface_fill_tolerance: 0.05,
             trust_declared_max_range: false,
             angle_min_deg: None,
             angle_increment_deg: None,

@@ -1364,23 +1364,28 @@ where
         ordered: cells,
     } = sums;
     acc.clear();
+    let filling = laser.fill_gap > 0.0;
+    let mut ends = Vec::new();
     for (pose, scan) in views {
         let sensor = pose.compose(&scan.sensor);
         let origin = sensor.translation();
         acc.reserve(scan.beams.len() * 64);
+        let mut add = |k: CellKey<D>, h: f32, d: f32| {
+            let e = acc.entry(k).or_insert((0.0, 0.0));
+            e.0 += h;
+            e.1 += d;
+        };
+        ends.clear();
         for b in &scan.beams {
-            laser.trace_update(
-                origin,
-                sensor.rotate(b.dir),
-                b.range,
-                b.no_return,
-                |k, h, d| {
-                    let e = acc.entry(k).or_insert((0.0, 0.0));
-                    e.0 += h;
-                    e.1 += d;
-                },
-            );
+            let dir = sensor.rotate(b.dir);
+            laser.trace_update(origin, dir, b.range, b.no_return, &mut add);
+            if filling {
+                ends.push(
+                    (!b.no_return).then(|| std::array::from_fn(|i| origin[i] + dir[i] * b.range)),
+                );
+            }
         }
+        laser.surface_update(&ends, &mut add);
     }
     let prior = laser.prior_distance as f32;
     // The cells in the order the map stores them: the look-ups below walk

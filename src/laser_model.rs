@@ -11,7 +11,7 @@
 //! ("no return") beams instead score the probability of passing the trace.
 
 use crate::config::LaserConfig;
-use crate::raycast::{CellKey, RayWalk};
+use crate::raycast::{CellKey, RayWalk, cell_of};
 
 /// Read access to one particle's view of the map.
 pub trait Occupancy<const D: usize> {
@@ -65,6 +65,11 @@ pub struct LaserModel {
     pub quick_after: f64,
     /// Usable range, m: "no return" beams are traced to here.
     pub max_range: f64,
+    /// Longest gap (m) between consecutive returns that
+    /// [`LaserModel::surface_update`] fills; 0: off.
+    pub fill_gap: f64,
+    /// How far (m) the neighbouring returns may lie off a filled pair's line.
+    pub fill_tolerance: f64,
 }
 
 impl LaserModel {
@@ -81,6 +86,8 @@ impl LaserModel {
             quick_before: cfg.quick_before_cells * cell,
             quick_after: cfg.quick_after_cells * cell,
             max_range,
+            fill_gap: cfg.surface_fill_gap,
+            fill_tolerance: cfg.surface_fill_tolerance,
         }
     }
 
@@ -164,6 +171,68 @@ impl LaserModel {
             acc(k.cell, hit, (k.t_out - k.t_in) as f32);
         }
     }
+}
+
+impl LaserModel {
+    /// Adds the surface between consecutive returns of one scan to `acc` as
+    /// `(cell, hits, distance m)` increments: one hit, no path, in each cell
+    /// strictly between the two endpoint cells. `ends` holds each beam's
+    /// endpoint (map frame, m) in scan order, `None` for a "no return",
+    /// which breaks the surface. A pair is filled when it lies at most
+    /// `fill_gap` apart and, unless it is at most two cells apart, the
+    /// returns on either side lie within `fill_tolerance` of its line: one
+    /// straight surface sampled four times, not a doorway's two jambs.
+    pub fn surface_update<const D: usize>(
+        &self,
+        ends: &[Option<[f64; D]>],
+        mut acc: impl FnMut(CellKey<D>, f32, f32),
+    ) {
+        if self.fill_gap <= 0.0 {
+            return;
+        }
+        let near = 2.0 * self.cell;
+        for i in 0..ends.len().saturating_sub(1) {
+            let (Some(a), Some(b)) = (ends[i], ends[i + 1]) else {
+                continue;
+            };
+            let len = distance(a, b);
+            if len <= 0.0 || len > self.fill_gap {
+                continue;
+            }
+            let dir: [f64; D] = std::array::from_fn(|k| (b[k] - a[k]) / len);
+            if len > near {
+                let before = i.checked_sub(1).and_then(|j| ends[j]);
+                let after = ends.get(i + 2).copied().flatten();
+                let on_line = |q: Option<[f64; D]>| {
+                    q.is_some_and(|q| off_line(q, a, dir) <= self.fill_tolerance)
+                };
+                if !(on_line(before) && on_line(after)) {
+                    continue;
+                }
+            }
+            let (first, last) = (cell_of(a, self.cell), cell_of(b, self.cell));
+            for c in RayWalk::new(a, dir, 0.0, len, self.cell) {
+                if c.cell != first && c.cell != last {
+                    acc(c.cell, 1.0, 0.0);
+                }
+            }
+        }
+    }
+}
+
+/// Euclidean distance between `a` and `b` (m).
+fn distance<const D: usize>(a: [f64; D], b: [f64; D]) -> f64 {
+    (0..D).map(|k| (b[k] - a[k]).powi(2)).sum::<f64>().sqrt()
+}
+
+/// Distance (m) of `q` from the line through `a` along unit `dir`.
+fn off_line<const D: usize>(q: [f64; D], a: [f64; D], dir: [f64; D]) -> f64 {
+    let w: [f64; D] = std::array::from_fn(|k| q[k] - a[k]);
+    let t: f64 = (0..D).map(|k| w[k] * dir[k]).sum();
+    (0..D)
+        .map(|k| (w[k] - t * dir[k]).powi(2))
+        .sum::<f64>()
+        .sqrt()
 }
 
 /// Probability that a beam stops within `len` m of a cell that stopped
@@ -267,6 +336,65 @@ mod tests {
         let mut g = corridor(20, 5.0, 0.1);
         let wall = m.beam_log_likelihood(&mut g, [0.05, 0.05], [1.0, 0.0], 2.0, false, Trace::Full);
         assert!(unknown.is_finite() && unknown < wall);
+    }
+
+    /// Collects `surface_update`'s increments for `ends` on a 0.1 m grid.
+    fn filled(gap: f64, ends: &[Option<[f64; 2]>]) -> FxHashMap<CellKey<2>, (f32, f32)> {
+        let cfg = LaserConfig {
+            surface_fill_gap: gap,
+            ..LaserConfig::default()
+        };
+        let m = LaserModel::new(&cfg, 0.1, 10.0);
+        let mut acc: FxHashMap<CellKey<2>, (f32, f32)> = FxHashMap::default();
+        m.surface_update(ends, |k, h, d| {
+            let e = acc.entry(k).or_default();
+            e.0 += h;
+            e.1 += d;
+        });
+        acc
+    }
+
+    #[test]
+    fn surface_fill_adds_hits_between_returns_on_one_line() {
+        // Four returns 0.5 m apart on the wall y = 1.05 (cell row 10).
+        let wall: Vec<_> = (0..4)
+            .map(|i| Some([0.05 + 0.5 * i as f64, 1.05]))
+            .collect();
+        let acc = filled(1.0, &wall);
+        // Pair 1 → 2 (x 0.55 → 1.05): the cells strictly between, x 6..=9.
+        let mut cells: Vec<_> = acc.keys().copied().collect();
+        cells.sort_unstable();
+        assert_eq!(cells, (6..=9).map(|x| [x, 10]).collect::<Vec<_>>());
+        assert!(acc.values().all(|&(h, d)| h == 1.0 && d == 0.0));
+        // Off: nothing.
+        assert!(filled(0.0, &wall).is_empty());
+        // Further apart than the gap: nothing.
+        assert!(filled(0.4, &wall).is_empty());
+    }
+
+    #[test]
+    fn surface_fill_does_not_bridge_a_corner_a_doorway_or_a_no_return() {
+        // The return after the pair lies 0.3 m off its line (a doorway's
+        // far side): no fill.
+        let door = [
+            Some([0.05, 1.05]),
+            Some([0.55, 1.05]),
+            Some([1.05, 1.05]),
+            Some([1.55, 1.35]),
+        ];
+        assert!(filled(1.0, &door).is_empty());
+        // A "no return" breaks the surface: no pair has neighbours on both sides.
+        let gap = [
+            Some([0.05, 1.05]),
+            Some([0.55, 1.05]),
+            None,
+            Some([1.05, 1.05]),
+            Some([1.55, 1.05]),
+        ];
+        assert!(filled(1.0, &gap).is_empty());
+        // Two returns at most two cells apart fill without neighbours.
+        let close = [Some([0.05, 1.05]), Some([0.25, 1.05])];
+        assert_eq!(filled(1.0, &close).keys().collect::<Vec<_>>(), [&[1, 10]]);
     }
 
     #[test]

@@ -356,6 +356,9 @@ impl Slam3d {
         let m = &self.cfg.map3d;
         let mut laser_cfg = self.cfg.laser.clone();
         laser_cfg.variance = m.variance;
+        // A sweep's points in storage order are not one scan line: two
+        // consecutive ones need not lie on one surface.
+        laser_cfg.surface_fill_gap = 0.0;
         if m.trace_sigmas > 0.0 {
             let cells = m.trace_sigmas * m.variance.sqrt() / m.voxel_size;
             laser_cfg.trace_past_cells = cells;
