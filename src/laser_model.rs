@@ -70,6 +70,8 @@ pub struct LaserModel {
     pub fill_gap: f64,
     /// How far (m) the neighbouring returns may lie off a filled pair's line.
     pub fill_tolerance: f64,
+    /// Hits added to each filled cell.
+    pub fill_hits: f32,
 }
 
 impl LaserModel {
@@ -88,6 +90,7 @@ impl LaserModel {
             max_range,
             fill_gap: cfg.surface_fill_gap,
             fill_tolerance: cfg.surface_fill_tolerance,
+            fill_hits: cfg.surface_fill_hits as f32,
         }
     }
 
@@ -175,8 +178,8 @@ impl LaserModel {
 
 impl LaserModel {
     /// Adds the surface between consecutive returns of one scan to `acc` as
-    /// `(cell, hits, distance m)` increments: one hit, no path, in each cell
-    /// strictly between the two endpoint cells. `ends` holds each beam's
+    /// `(cell, hits, distance m)` increments: `fill_hits` hits, no path, in
+    /// each cell strictly between the two endpoint cells. `ends` holds each beam's
     /// endpoint (map frame, m) in scan order, `None` for a "no return",
     /// which breaks the surface. A pair is filled when it lies at most
     /// `fill_gap` apart and, unless it is at most two cells apart, the
@@ -213,7 +216,7 @@ impl LaserModel {
             let (first, last) = (cell_of(a, self.cell), cell_of(b, self.cell));
             for c in RayWalk::new(a, dir, 0.0, len, self.cell) {
                 if c.cell != first && c.cell != last {
-                    acc(c.cell, 1.0, 0.0);
+                    acc(c.cell, self.fill_hits, 0.0);
                 }
             }
         }
@@ -342,6 +345,7 @@ mod tests {
     fn filled(gap: f64, ends: &[Option<[f64; 2]>]) -> FxHashMap<CellKey<2>, (f32, f32)> {
         let cfg = LaserConfig {
             surface_fill_gap: gap,
+            surface_fill_hits: 1.0,
             ..LaserConfig::default()
         };
         let m = LaserModel::new(&cfg, 0.1, 10.0);
