@@ -629,8 +629,8 @@ pub struct LaserConfig {
     /// seen at a grazing angle, and a wall cell between two samples then
     /// holds no hit and lets every later beam through. Where two
     /// consecutive returns lie at most this far apart on one straight
-    /// surface (see `surface_fill_tolerance`), the map update also adds one
-    /// hit to each cell between them. Without it the likelihood of a scan
+    /// surface (see `surface_fill_tolerance`), the map update also adds
+    /// `surface_fill_hits` to each cell between them. Without it the likelihood of a scan
     /// in a featureless corridor peaks where the earlier scans were taken,
     /// not at the true pose (docs/PROPOSAL-2D.md, session 28). 3-D sweeps
     /// are not scan lines and never fill.

@@ -174,9 +174,7 @@ impl LaserModel {
             acc(k.cell, hit, (k.t_out - k.t_in) as f32);
         }
     }
-}
 
-impl LaserModel {
     /// Adds the surface between consecutive returns of one scan to `acc` as
     /// `(cell, hits, distance m)` increments: `fill_hits` hits, no path, in
     /// each cell strictly between the two endpoint cells. `ends` holds each beam's

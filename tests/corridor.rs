@@ -25,12 +25,7 @@ fn corridor_log(dir: &std::path::Path) -> std::path::PathBuf {
         beams: 361,
         fov_deg: 180.0,
         max_range: MAX_RANGE,
-        odometry: OdometryNoise {
-            trans_per_m: 0.0,
-            rot_per_m: 0.0,
-            rot_per_rad: 0.0,
-            rot_bias_deg_per_m: 0.0,
-        },
+        odometry: OdometryNoise::zero(),
         world: Some(World2d {
             segments: vec![
                 wall([-2.0, -0.7], [40.0, -0.7]),

@@ -20,15 +20,6 @@ fn step(a: &Pose2, b: &Pose2) -> (f64, f64) {
     (dx.hypot(dy), dth)
 }
 
-fn quiet_odometry() -> OdometryNoise {
-    OdometryNoise {
-        trans_per_m: 0.0,
-        rot_per_m: 0.0,
-        rot_per_rad: 0.0,
-        rot_bias_deg_per_m: 0.0,
-    }
-}
-
 #[test]
 fn same_seed_same_output_other_seed_other_noise() {
     let cfg = Sim2dConfig {
@@ -83,7 +74,7 @@ fn ray_casting_against_a_hand_computed_wall() {
     let cfg = Sim2dConfig {
         waypoints: vec![[0.0, 0.0], [1.0, 0.0]],
         range_sigma: 0.0,
-        odometry: quiet_odometry(),
+        odometry: OdometryNoise::zero(),
         world: Some(world),
         ..Sim2dConfig::default()
     };

@@ -252,6 +252,18 @@ pub struct OdometryNoise {
     pub rot_bias_deg_per_m: f64,
 }
 
+impl OdometryNoise {
+    /// No noise at all: the odometry reproduces the true path.
+    pub fn zero() -> Self {
+        Self {
+            trans_per_m: 0.0,
+            rot_per_m: 0.0,
+            rot_per_rad: 0.0,
+            rot_bias_deg_per_m: 0.0,
+        }
+    }
+}
+
 impl Default for OdometryNoise {
     fn default() -> Self {
         OdometryNoise {
@@ -756,12 +768,7 @@ mod tests {
         let cfg = Sim2dConfig {
             waypoints: vec![[2.0, 0.0], [18.0, 0.0], [18.0, 4.0]],
             range_sigma: 0.0,
-            odometry: OdometryNoise {
-                trans_per_m: 0.0,
-                rot_per_m: 0.0,
-                rot_per_rad: 0.0,
-                rot_bias_deg_per_m: 0.0,
-            },
+            odometry: OdometryNoise::zero(),
             ..Sim2dConfig::default()
         };
         let sim = simulate2d(&cfg, 5).unwrap();
