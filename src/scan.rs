@@ -65,14 +65,6 @@ pub struct LaserScan2d {
     pub line: usize,
 }
 
-impl LaserScan2d {
-    /// Whether reading `i` is a "no return".
-    pub fn is_no_return(&self, i: usize) -> bool {
-        let r = self.ranges[i];
-        !r.is_finite() || r >= self.max_range || r <= 0.0
-    }
-}
-
 /// One 2-D laser reading as a driver reports it (sensor frame), borrowed:
 /// what [`crate::slam::Slam2d::add_scan`] takes.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -125,6 +117,11 @@ impl Ranges2d<'_> {
 }
 
 impl LaserScan2d {
+    /// Whether reading `i` is a "no return" (see [`Ranges2d::is_no_return`]).
+    pub fn is_no_return(&self, i: usize) -> bool {
+        self.as_ranges().is_no_return(i)
+    }
+
     /// The reading alone, for [`crate::slam::Slam2d::add_scan`].
     pub fn as_ranges(&self) -> Ranges2d<'_> {
         Ranges2d {
