@@ -894,6 +894,16 @@ impl Config {
         if l.prior_stop_every.is_nan() || l.prior_stop_every <= 0.0 {
             return bad("laser.prior_stop_every must be positive");
         }
+        // A NaN gap would pass every pair's `len > gap` test and fill them all.
+        if !(l.surface_fill_gap.is_finite() && l.surface_fill_gap >= 0.0) {
+            return bad("laser.surface_fill_gap must be ≥ 0 m (0 = off)");
+        }
+        if !(l.surface_fill_tolerance.is_finite() && l.surface_fill_tolerance >= 0.0) {
+            return bad("laser.surface_fill_tolerance must be ≥ 0 m");
+        }
+        if !(l.surface_fill_hits.is_finite() && l.surface_fill_hits > 0.0) {
+            return bad("laser.surface_fill_hits must be positive");
+        }
         let w = self.scan_match.wall_radius;
         if !(w.is_finite() && w > 0.0 && w <= 5.0) {
             return bad("scan_match.wall_radius must be in (0, 5] m");
@@ -1048,6 +1058,29 @@ mod tests {
             let e = Config::from_toml_file(&p).unwrap_err().to_string();
             assert!(e.contains("resample_below"), "{bad}: {e}");
         }
+    }
+
+    #[test]
+    fn bad_surface_fill_settings_are_config_errors() {
+        for (key, value) in [
+            ("surface_fill_gap", f64::NAN),
+            ("surface_fill_gap", -0.5),
+            ("surface_fill_tolerance", f64::INFINITY),
+            ("surface_fill_hits", 0.0),
+            ("surface_fill_hits", -0.25),
+        ] {
+            let mut c = Config::default();
+            match key {
+                "surface_fill_gap" => c.laser.surface_fill_gap = value,
+                "surface_fill_tolerance" => c.laser.surface_fill_tolerance = value,
+                _ => c.laser.surface_fill_hits = value,
+            }
+            let e = c.validate().unwrap_err().to_string();
+            assert!(e.contains(key), "{key} = {value}: {e}");
+        }
+        let mut c = Config::default();
+        c.laser.surface_fill_gap = 0.5;
+        assert!(c.validate().is_ok());
     }
 
     #[test]
