@@ -239,6 +239,14 @@ pub struct ScanMatchConfig {
     /// × motion prior / mixture density) decide between the peaks, not the
     /// matcher's score alone. 0 = off (the searched peak only).
     pub odometry_peak_share: f64,
+    /// Hits a cell needs under the view before it enters the likelihood
+    /// field, in hit units (a laser endpoint writes 1; `laser.surface_fill_gap`
+    /// writes `laser.surface_fill_hits` into the cells it fills). 0 = any
+    /// hit counts. The default, 1, keeps the fill's inferred surfaces out
+    /// of the match while the DP likelihood still weighs them: with the
+    /// fill in the field, fr079 and fr079-raw were lost at a narrow passage
+    /// (docs/PROPOSAL-2D.md, sessions 29 and 30).
+    pub field_min_hits: f64,
 }
 
 /// What a cell with hits weighs in the scan matcher's likelihood field
@@ -271,6 +279,14 @@ pub enum FieldWeight {
     Walls,
 }
 
+impl ScanMatchConfig {
+    /// Whether a cell with `hits` under a view enters the scan matcher's
+    /// likelihood field (`field_min_hits`).
+    pub(crate) fn field_keeps(&self, hits: f32) -> bool {
+        hits > 0.0 && f64::from(hits) >= self.field_min_hits
+    }
+}
+
 impl Default for ScanMatchConfig {
     fn default() -> Self {
         Self {
@@ -294,6 +310,7 @@ impl Default for ScanMatchConfig {
             field_weight: FieldWeight::default(),
             wall_radius: 0.15,
             odometry_peak_share: 0.0,
+            field_min_hits: 1.0,
         }
     }
 }
@@ -623,8 +640,10 @@ pub struct LaserConfig {
     pub max_range: f64,
     /// Use at most this many beams per scan, evenly spaced (release: 180).
     pub max_beams: usize,
-    /// Surface fill, m (0: off, the default and the release's update; 0.5
-    /// tried in session 28, docs/CONFIG.md). A 2-D scan samples a
+    /// Surface fill, m (0: off, the release's update; default 0.5, with
+    /// `scan_match.field_min_hits = 1` keeping the filled cells out of the
+    /// scan matcher: the pair won over the suite in session 30,
+    /// docs/PROPOSAL-2D.md). A 2-D scan samples a
     /// wall at one endpoint per beam, far apart where the wall is far or
     /// seen at a grazing angle, and a wall cell between two samples then
     /// holds no hit and lets every later beam through. Where two
@@ -769,7 +788,7 @@ impl Default for LaserConfig {
             quick_after_cells: 3.0,
             max_range: 0.0,
             max_beams: 181,
-            surface_fill_gap: 0.0,
+            surface_fill_gap: 0.5,
             surface_fill_tolerance: 0.05,
             surface_fill_hits: 0.25,
             trust_declared_max_range: false,
@@ -907,6 +926,10 @@ impl Config {
         let w = self.scan_match.wall_radius;
         if !(w.is_finite() && w > 0.0 && w <= 5.0) {
             return bad("scan_match.wall_radius must be in (0, 5] m");
+        }
+        let m = self.scan_match.field_min_hits;
+        if !(m.is_finite() && m >= 0.0) {
+            return bad("scan_match.field_min_hits must be ≥ 0 (0 = any hit)");
         }
         let h = &self.hierarchy;
         if h.window == 0 || h.particles == 0 || h.samples_per_particle == 0 {
@@ -1079,8 +1102,26 @@ mod tests {
             assert!(e.contains(key), "{key} = {value}: {e}");
         }
         let mut c = Config::default();
-        c.laser.surface_fill_gap = 0.5;
+        c.laser.surface_fill_gap = 0.0;
         assert!(c.validate().is_ok());
+    }
+
+    #[test]
+    fn field_min_hits_keeps_fill_cells_out_of_the_match_field() {
+        let mut m = ScanMatchConfig::default();
+        // The default, 1: a quarter-hit fill cell stays out, an endpoint's
+        // cell (1 hit) is in.
+        assert!(!m.field_keeps(0.25) && !m.field_keeps(0.75));
+        assert!(m.field_keeps(1.0) && m.field_keeps(1.25) && m.field_keeps(7.0));
+        m.field_min_hits = 0.0;
+        assert!(m.field_keeps(0.25) && m.field_keeps(1.0));
+        assert!(!m.field_keeps(0.0) && !m.field_keeps(-1.0));
+        for bad in [f64::NAN, -1.0, f64::INFINITY] {
+            let mut c = Config::default();
+            c.scan_match.field_min_hits = bad;
+            let e = c.validate().unwrap_err().to_string();
+            assert!(e.contains("field_min_hits"), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -1048,9 +1048,9 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                 let mut out = Vec::new();
                 for bx in bx0..=bx1 {
                     ctx.map.for_each_cell_in_brick([bx, by], |k, list| {
-                        if list.iter().any(|e| e.hits > 0.0) {
+                        if list.iter().any(|e| c.field_keeps(e.hits)) {
                             let seen = match seen_alike(list) {
-                                Some(Some(e)) if e.hits > 0.0 => Seen::Alike(Some(e)),
+                                Some(Some(e)) if c.field_keeps(e.hits) => Seen::Alike(Some(e)),
                                 Some(_) => Seen::Alike(None),
                                 None => Seen::Varying,
                             };
@@ -1096,7 +1096,7 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                             Seen::Alike(_) => alike[at]?,
                             Seen::Varying => {
                                 let e = view.entry(k)?;
-                                if e.hits <= 0.0 {
+                                if !c.field_keeps(e.hits) {
                                     return None;
                                 }
                                 weight_of(&e, walls.get(at) == Some(&true))
