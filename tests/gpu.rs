@@ -303,15 +303,16 @@ fn incremental_map_syncs_after_filter_steps_score_as_on_the_cpu() {
         beams,
         seed,
     };
-    // Bindings of 2 MiB (2-D, f32) and 512 KiB (3-D, f64): the entries
-    // span several chunks, so in-place writes land in several of them.
+    // Bindings of 1 MiB (2-D, f32) and 512 KiB (3-D, f64): the entries
+    // span several chunks, so in-place writes land in several of them
+    // (the 2-D fixture's packed map is about 2 MB).
     let options = |precision, max_binding| GpuOptions {
         precision,
         max_binding: Some(max_binding),
     };
     incremental_steps(
         &mut fixture2d(&spec(4, 3, 21, 120, 8)),
-        options(GpuPrecision::F32, 2 << 20),
+        options(GpuPrecision::F32, 1 << 20),
         [0.25, 0.02],
         6,
     );
