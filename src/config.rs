@@ -914,23 +914,28 @@ impl Config {
             return bad("laser.prior_stop_every must be positive");
         }
         // A NaN gap would pass every pair's `len > gap` test and fill them all.
-        if !(l.surface_fill_gap.is_finite() && l.surface_fill_gap >= 0.0) {
-            return bad("laser.surface_fill_gap must be ≥ 0 m (0 = off)");
-        }
-        if !(l.surface_fill_tolerance.is_finite() && l.surface_fill_tolerance >= 0.0) {
-            return bad("laser.surface_fill_tolerance must be ≥ 0 m");
-        }
-        if !(l.surface_fill_hits.is_finite() && l.surface_fill_hits > 0.0) {
-            return bad("laser.surface_fill_hits must be positive");
-        }
+        check_values(
+            "laser",
+            &[
+                ("surface_fill_gap", l.surface_fill_gap),
+                ("surface_fill_tolerance", l.surface_fill_tolerance),
+            ],
+            true,
+        )?;
+        check_values(
+            "laser",
+            &[("surface_fill_hits", l.surface_fill_hits)],
+            false,
+        )?;
         let w = self.scan_match.wall_radius;
         if !(w.is_finite() && w > 0.0 && w <= 5.0) {
             return bad("scan_match.wall_radius must be in (0, 5] m");
         }
-        let m = self.scan_match.field_min_hits;
-        if !(m.is_finite() && m >= 0.0) {
-            return bad("scan_match.field_min_hits must be ≥ 0 (0 = any hit)");
-        }
+        check_values(
+            "scan_match",
+            &[("field_min_hits", self.scan_match.field_min_hits)],
+            true,
+        )?;
         let h = &self.hierarchy;
         if h.window == 0 || h.particles == 0 || h.samples_per_particle == 0 {
             return bad("hierarchy.window, particles and samples_per_particle must be at least 1");
