@@ -25,6 +25,10 @@ pub type NodeId = u32;
 /// Marks "no node" (the root's parent).
 pub const NO_NODE: NodeId = NodeId::MAX;
 
+/// The root's id in every tree: [`AncestryTree::new`] makes it first, and it
+/// is never removed or renamed (the DP-map relies on it, see `dpmap`).
+pub const ROOT: NodeId = 0;
+
 #[derive(Debug, Clone)]
 struct Node<T> {
     parent: NodeId,
@@ -87,7 +91,7 @@ impl<T: Clone> AncestryTree<T> {
                 payload,
             }],
             free: Vec::new(),
-            root: 0,
+            root: ROOT,
             live: 1,
         }
     }

@@ -20,7 +20,7 @@
 //!
 //! The map mirrors the ancestry tree's edits ([`DpMap::apply`]).
 
-use crate::ancestry::{Change, NodeId, Numbering};
+use crate::ancestry::{Change, NodeId, Numbering, ROOT};
 use crate::raycast::CellKey;
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
@@ -71,9 +71,53 @@ const MANY_CANDIDATES: usize = 4096;
 #[derive(Debug, Clone)]
 struct Brick {
     cells: Box<[CellList]>,
+    /// Bit `i`: cell `i`'s list holds an entry of the root and no entry with
+    /// hits, so every particle sees there a cell no beam has stopped in.
+    /// Tracing a beam needs no more than that (its stop probability is 0),
+    /// and most cells a beam crosses are such: the bit spares the look-up
+    /// of their lists ([`MapView::lookup_for_trace`]). Kept by every edit of
+    /// a list's nodes or hits ([`DpMap::edit_cell`]).
+    clear: [u64; 8],
+    /// Bit `i`: cell `i`'s list holds an entry with hits (the scan
+    /// matcher's field is built from these cells only; most cells have
+    /// none). Kept with `clear`.
+    hit: [u64; 8],
     /// The map version of the last op that reached one of its cells through
-    /// `cell_mut`: lets mirrors of the map (the GPU's) copy only what changed.
+    /// `cell_mut` or `edit_cell`: lets mirrors of the map (the GPU's) copy
+    /// only what changed.
     stamp: u64,
+}
+
+impl Brick {
+    fn new(cells: usize) -> Self {
+        debug_assert!(cells <= 64 * 8, "a brick's clear bits cover 512 cells");
+        Self {
+            cells: vec![CellList::new(); cells].into_boxed_slice(),
+            clear: [0; 8],
+            hit: [0; 8],
+            stamp: 0,
+        }
+    }
+
+    #[inline]
+    fn is_clear(&self, i: usize) -> bool {
+        (self.clear[i >> 6] >> (i & 63)) & 1 != 0
+    }
+
+    /// Recomputes cell `i`'s clear and hit bits from its list.
+    fn refresh(&mut self, i: usize) {
+        let list = &self.cells[i];
+        let hit = list.iter().any(|e| e.hits > 0.0);
+        let clear = !hit && list.iter().any(|e| e.node == ROOT);
+        let (word, bit) = (i >> 6, 1u64 << (i & 63));
+        for (set, bits) in [(clear, &mut self.clear), (hit, &mut self.hit)] {
+            if set {
+                bits[word] |= bit;
+            } else {
+                bits[word] &= !bit;
+            }
+        }
+    }
 }
 
 /// Map versions are unique across all maps of the process, so that a cache
@@ -118,8 +162,10 @@ impl<const D: usize> Clone for DpMap<D> {
     }
 }
 
+/// Cell `k` as (its brick's key, its index inside the brick): the map's
+/// storage order is by brick key, then by index.
 #[inline]
-fn split<const D: usize>(k: CellKey<D>) -> (CellKey<D>, usize) {
+pub(crate) fn split<const D: usize>(k: CellKey<D>) -> (CellKey<D>, usize) {
     let bits = brick_bits(D);
     let mask = (1i32 << bits) - 1;
     let mut b = [0i32; D];
@@ -150,6 +196,14 @@ pub fn storage_order<const D: usize>(k: CellKey<D>) -> u128 {
         (key << 32) | u128::from(c as u32 ^ 0x8000_0000)
     }) << 32
         | idx as u128
+}
+
+/// Inverse of [`split`]: the cell at index `idx` of brick `b`.
+#[inline]
+pub(crate) fn join<const D: usize>(b: CellKey<D>, idx: usize) -> CellKey<D> {
+    let bits = brick_bits(D);
+    let local = unsplit_local::<D>(idx);
+    std::array::from_fn(|a| (b[a] << bits) + local[a] as i32)
 }
 
 /// Inverse of the in-brick part of [`split`]: local coordinates of index `idx`.
@@ -272,20 +326,29 @@ impl<const D: usize> DpMap<D> {
         }
     }
 
-    /// Every mutation of a list goes through here, after its op has taken a
-    /// new version, which stamps the brick.
+    /// A list whose entries' path lengths an op edits, and nothing else
+    /// (their nodes and hits stay: the brick's clear bits stay true). Called
+    /// after the op has taken a new version, which stamps the brick.
     fn cell_mut(&mut self, k: CellKey<D>) -> &mut CellList {
         let (b, i) = split(k);
         &mut self.brick_mut(b).cells[i]
     }
 
+    /// Every other edit of a list goes through here: `edit` may change the
+    /// list in any way; the cell's clear bit is then recomputed. Called
+    /// after the op has taken a new version, which stamps the brick.
+    fn edit_cell<R>(&mut self, k: CellKey<D>, edit: impl FnOnce(&mut CellList) -> R) -> R {
+        let (b, i) = split(k);
+        let brick = self.brick_mut(b);
+        let r = edit(&mut brick.cells[i]);
+        brick.refresh(i);
+        r
+    }
+
     /// Brick `b` (allocated on first use), stamped with the current version.
     fn brick_mut(&mut self, b: CellKey<D>) -> &mut Brick {
         let n = Self::brick_cells();
-        let brick = self.bricks.entry(b).or_insert_with(|| Brick {
-            cells: vec![CellList::new(); n].into_boxed_slice(),
-            stamp: 0,
-        });
+        let brick = self.bricks.entry(b).or_insert_with(|| Brick::new(n));
         brick.stamp = self.version;
         brick
     }
@@ -346,6 +409,10 @@ impl<const D: usize> DpMap<D> {
                         hits,
                         distance,
                     });
+                    // Another node's entry with no hits leaves the bit as it was.
+                    if hits > 0.0 || *node == ROOT {
+                        brick.refresh(i);
+                    }
                     taken += 1;
                 }
                 rest = &rest[taken..];
@@ -379,12 +446,12 @@ impl<const D: usize> DpMap<D> {
         hits: f32,
         distance: f32,
     ) {
-        let list = self.cell_mut(k);
-        match index.entry(k) {
+        let added = self.edit_cell(k, |list| match index.entry(k) {
             std::collections::hash_map::Entry::Occupied(o) => {
                 let e = &mut list[*o.get() as usize];
                 e.hits = hits;
                 e.distance = distance;
+                false
             }
             std::collections::hash_map::Entry::Vacant(v) => {
                 list.push(Entry {
@@ -393,9 +460,10 @@ impl<const D: usize> DpMap<D> {
                     distance,
                 });
                 v.insert((list.len() - 1) as u32);
-                self.entries += 1;
+                true
             }
-        }
+        });
+        self.entries += usize::from(added);
     }
 
     /// Adds `distance` (m) to `node`'s existing entry in cell `k` in place,
@@ -448,11 +516,14 @@ impl<const D: usize> DpMap<D> {
 
     /// A read-only view of the map as seen by the particle holding `leaf`.
     pub fn view<'a>(&'a self, numbering: &'a Numbering, leaf: NodeId) -> MapView<'a, D> {
+        let leaf_enter = numbering.enter[leaf as usize];
         MapView {
             map: self,
             enter: &numbering.enter,
             exit: &numbering.exit,
-            leaf_enter: numbering.enter[leaf as usize],
+            leaf_enter,
+            sees_root: numbering.enter[ROOT as usize] <= leaf_enter
+                && leaf_enter <= numbering.exit[ROOT as usize],
             last: None,
         }
     }
@@ -501,22 +572,23 @@ impl<const D: usize> DpMap<D> {
             let k = cells[start].0;
             let end = start + cells[start..].iter().take_while(|c| c.0 == k).count();
             let removed = end - start;
-            let list = self.cell_mut(k);
-            if removed * 4 >= list.len() {
-                let mut w = 0;
-                for r in 0..list.len() {
-                    let e = list[r];
-                    if is_dead.get(e.node as usize).copied().unwrap_or(false) {
-                        continue;
+            if removed * 4 >= self.cell(k).len() {
+                self.edit_cell(k, |list| {
+                    let mut w = 0;
+                    for r in 0..list.len() {
+                        let e = list[r];
+                        if is_dead.get(e.node as usize).copied().unwrap_or(false) {
+                            continue;
+                        }
+                        if w != r {
+                            list[w] = e;
+                            moved.push((e.node, k, w as u32));
+                        }
+                        w += 1;
                     }
-                    if w != r {
-                        list[w] = e;
-                        moved.push((e.node, k, w as u32));
-                    }
-                    w += 1;
-                }
-                list.truncate(w);
-                list.give_back_spare();
+                    list.truncate(w);
+                    list.give_back_spare();
+                });
                 self.entries -= removed;
             } else {
                 // Highest position first: the entry a swap moves comes from
@@ -536,10 +608,11 @@ impl<const D: usize> DpMap<D> {
 
     /// Removes the entry at `pos` of cell `k` by swapping the last one in.
     fn swap_out(&mut self, k: CellKey<D>, pos: u32) {
-        let list = self.cell_mut(k);
-        list.swap_remove(pos as usize);
-        list.give_back_spare();
-        let moved = list.get(pos as usize).map(|e| e.node);
+        let moved = self.edit_cell(k, |list| {
+            list.swap_remove(pos as usize);
+            list.give_back_spare();
+            list.get(pos as usize).map(|e| e.node)
+        });
         self.entries -= 1;
         if let Some(m) = moved {
             self.index[m as usize].insert(k, pos);
@@ -562,14 +635,15 @@ impl<const D: usize> DpMap<D> {
             match self.node_index(into).get(&k).copied() {
                 Some(px) => {
                     // The parent's entry takes the child's (newer) values.
-                    let list = self.cell_mut(k);
-                    let (h, d) = (list[pc as usize].hits, list[pc as usize].distance);
-                    list[px as usize].hits = h;
-                    list[px as usize].distance = d;
+                    self.edit_cell(k, |list| {
+                        let (h, d) = (list[pc as usize].hits, list[pc as usize].distance);
+                        list[px as usize].hits = h;
+                        list[px as usize].distance = d;
+                    });
                     self.swap_out(k, pc);
                 }
                 None => {
-                    self.cell_mut(k)[pc as usize].node = into;
+                    self.edit_cell(k, |list| list[pc as usize].node = into);
                     self.node_index(into).insert(k, pc);
                 }
             }
@@ -589,6 +663,27 @@ impl<const D: usize> DpMap<D> {
     pub fn for_each_cell_in_brick(&self, b: CellKey<D>, mut f: impl FnMut(CellKey<D>, &[Entry])) {
         if let Some(brick) = self.bricks.get(&b) {
             Self::visit_brick(b, brick, &mut f);
+        }
+    }
+
+    /// As [`DpMap::for_each_cell_in_brick`], for the cells with an entry
+    /// with hits only (any particle's): found from the brick's bits, without
+    /// reading the other cells' lists.
+    pub fn for_each_hit_cell_in_brick(
+        &self,
+        b: CellKey<D>,
+        mut f: impl FnMut(CellKey<D>, &[Entry]),
+    ) {
+        let Some(brick) = self.bricks.get(&b) else {
+            return;
+        };
+        for (w, &word) in brick.hit.iter().enumerate() {
+            let mut bits = word;
+            while bits != 0 {
+                let i = w * 64 + bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                f(join(b, i), &brick.cells[i]);
+            }
         }
     }
 
@@ -871,12 +966,17 @@ pub struct MapView<'a, const D: usize> {
     enter: &'a [u32],
     exit: &'a [u32],
     leaf_enter: u32,
+    /// Whether the root is this particle's ancestor (it always is in a
+    /// numbering of the tree the map mirrors): only then do the bricks'
+    /// clear bits speak for this view.
+    sees_root: bool,
     last: Option<(CellKey<D>, &'a Brick)>,
 }
 
 impl<'a, const D: usize> MapView<'a, D> {
+    /// The brick holding cell `k` and the cell's index in it.
     #[inline]
-    fn list(&mut self, k: CellKey<D>) -> Option<&'a CellList> {
+    fn brick(&mut self, k: CellKey<D>) -> Option<(&'a Brick, usize)> {
         let (b, i) = split(k);
         let brick = match self.last {
             Some((lb, brick)) if lb == b => brick,
@@ -886,7 +986,12 @@ impl<'a, const D: usize> MapView<'a, D> {
                 brick
             }
         };
-        Some(&brick.cells[i])
+        Some((brick, i))
+    }
+
+    #[inline]
+    fn list(&mut self, k: CellKey<D>) -> Option<&'a CellList> {
+        self.brick(k).map(|(brick, i)| &brick.cells[i])
     }
 
     /// `(hits, distance)` of the cell as this particle sees it; `None` if unknown.
@@ -916,10 +1021,51 @@ impl<'a, const D: usize> MapView<'a, D> {
         self.entry_cached(cache, k).map(|e| (e.hits, e.distance))
     }
 
+    /// As [`MapView::lookup`] for tracing a beam, where only whether the
+    /// cell has hits matters when it has none: `Some((0.0, 0.0))` may stand
+    /// for an entry with no hits and any path length. Such cells are most
+    /// of what a beam crosses, and this answers them from the brick's clear
+    /// bits without reading their lists.
+    #[inline]
+    pub fn lookup_for_trace(&mut self, k: CellKey<D>) -> Option<(f32, f32)> {
+        let (brick, i) = self.brick(k)?;
+        if self.sees_root && brick.is_clear(i) {
+            return Some((0.0, 0.0));
+        }
+        resolve(&brick.cells[i], self.enter, self.exit, self.leaf_enter)
+            .map(|e| (e.hits, e.distance))
+    }
+
+    /// As [`MapView::lookup_for_trace`], resolving long lists through `cache`.
+    #[inline]
+    pub fn lookup_for_trace_cached(
+        &mut self,
+        cache: &mut ViewCache<D>,
+        k: CellKey<D>,
+    ) -> Option<(f32, f32)> {
+        let (brick, i) = self.brick(k)?;
+        if self.sees_root && brick.is_clear(i) {
+            return Some((0.0, 0.0));
+        }
+        self.resolve_cached(cache, k, &brick.cells[i])
+            .map(|e| (e.hits, e.distance))
+    }
+
     /// As [`MapView::entry`], resolving long lists through `cache`.
     #[inline]
     pub fn entry_cached(&mut self, cache: &mut ViewCache<D>, k: CellKey<D>) -> Option<Entry> {
         let list = self.list(k)?;
+        self.resolve_cached(cache, k, list)
+    }
+
+    /// The entry this particle sees in `list`, cell `k`'s list.
+    #[inline]
+    fn resolve_cached(
+        &self,
+        cache: &mut ViewCache<D>,
+        k: CellKey<D>,
+        list: &[Entry],
+    ) -> Option<Entry> {
         if list.len() <= cache.direct_scan_max {
             return resolve(list, self.enter, self.exit, self.leaf_enter);
         }
@@ -1120,6 +1266,100 @@ mod tests {
         batch.set_distances_at([([40, 2], pos, 9.0)]);
         assert_eq!(batch.entry_of(b, [40, 2]).unwrap().distance, 9.0);
         assert_eq!(batch.entry_of(a, [40, 1]).unwrap().distance, 4.0);
+    }
+
+    #[test]
+    fn trace_lookups_agree_with_full_ones_where_cells_stay_free() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        let mut t = AncestryTree::new(vec![()]);
+        let mut m = DpMap::<2>::new(0.1);
+        let n = 24;
+        let mut held = vec![t.root(); n];
+        let mut num = Numbering::default();
+        let mut cache = ViewCache::new();
+        let (mut clear_answers, mut hit_answers) = (0, 0);
+        for g in 0..120 {
+            t.number(&mut num);
+            let pick: Vec<usize> = (0..n).map(|_| rng.random_range(0..n)).collect();
+            let mut updates = Vec::new();
+            for &p in &pick {
+                let mut v = m.view(&num, held[p]);
+                let mut ups: Vec<(CellKey<2>, f32, f32)> = Vec::new();
+                for _ in 0..12 {
+                    let k = [rng.random_range(-5..5), rng.random_range(-5..5)];
+                    if ups.iter().any(|u| u.0 == k) {
+                        continue;
+                    }
+                    let (h, d) = v.lookup(k).unwrap_or((0.0, 0.0));
+                    // Mostly free-space evidence: most cells never get a hit.
+                    let hit = if rng.random_bool(0.1) { 1.0 } else { 0.0 };
+                    ups.push((k, h + hit, d + 0.1));
+                }
+                ups.sort_by_key(|u| storage_order(u.0));
+                updates.push(ups);
+            }
+            let new_held: Vec<NodeId> = pick.iter().map(|&p| t.add_child(held[p], ())).collect();
+            for (i, (node, ups)) in new_held.iter().zip(&updates).enumerate() {
+                // Both ways in: fresh nodes and entry by entry.
+                if (g + i) % 2 == 0 {
+                    m.insert_fresh(*node, ups);
+                } else {
+                    for &(k, h, d) in ups {
+                        m.insert(*node, k, h, d);
+                    }
+                }
+            }
+            held = new_held;
+            m.apply(&t.maintain(&mut held));
+            t.number(&mut num);
+            for brick in m.bricks.values() {
+                for (i, list) in brick.cells.iter().enumerate() {
+                    let clear = list.iter().any(|e| e.node == t.root())
+                        && list.iter().all(|e| e.hits <= 0.0);
+                    assert_eq!(brick.is_clear(i), clear, "gen {g}");
+                    let hit = list.iter().any(|e| e.hits > 0.0);
+                    assert_eq!((brick.hit[i >> 6] >> (i & 63)) & 1 == 1, hit, "gen {g}");
+                }
+            }
+            for &leaf in &held {
+                let mut v = m.view(&num, leaf);
+                for x in -6..6 {
+                    for y in -6..6 {
+                        let k = [x, y];
+                        let full = v.lookup(k);
+                        for quick in [
+                            v.lookup_for_trace(k),
+                            v.lookup_for_trace_cached(&mut cache, k),
+                        ] {
+                            match (full, quick) {
+                                (None, None) => {}
+                                (Some((h, _)), Some(q)) if h > 0.0 => {
+                                    assert_eq!(Some(q), full, "gen {g} cell {k:?}");
+                                    hit_answers += 1;
+                                }
+                                (Some(_), Some((h, _))) => {
+                                    assert!(h <= 0.0, "gen {g} cell {k:?}");
+                                    clear_answers += usize::from(q_is_shortcut(&m, k));
+                                }
+                                _ => panic!("gen {g} cell {k:?}: {full:?} against {quick:?}"),
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(
+            clear_answers > 1000,
+            "the clear bits answered {clear_answers} look-ups"
+        );
+        assert!(hit_answers > 1000);
+    }
+
+    /// Whether the clear bit of `k` is set (the trace look-up's shortcut).
+    fn q_is_shortcut(m: &DpMap<2>, k: CellKey<2>) -> bool {
+        let (b, i) = split(k);
+        m.bricks.get(&b).is_some_and(|brick| brick.is_clear(i))
     }
 
     #[test]

@@ -18,7 +18,7 @@
 
 use crate::ancestry::{AncestryTree, NodeId, Numbering};
 use crate::config::{FilterConfig, MapConfig, ReportedPose, Resampling};
-use crate::dpmap::{DpMap, storage_order};
+use crate::dpmap::DpMap;
 use crate::geometry::Pose;
 use crate::laser_model::{LaserModel, Trace};
 use crate::motion_model::MotionModel;
@@ -1328,6 +1328,7 @@ impl<const D: usize> Observation<D> {
 
 /// Free path through a cell that the observing particle sees as free, to be
 /// added in place to the entry it sees there.
+#[derive(Clone, Copy)]
 struct FreeShare<const D: usize> {
     /// The node whose entry the particle sees.
     owner: NodeId,
@@ -1359,22 +1360,13 @@ fn observe<'s, const D: usize, P: Pose<D>>(
 where
     Scan<D, P>: 's,
 {
-    let CellSums {
-        by_cell: acc,
-        ordered: cells,
-    } = sums;
-    acc.clear();
+    sums.clear();
     let filling = laser.fill_gap > 0.0;
     let mut ends = Vec::new();
     for (pose, scan) in views {
         let sensor = pose.compose(&scan.sensor);
         let origin = sensor.translation();
-        acc.reserve(scan.beams.len() * 64);
-        let mut add = |k: CellKey<D>, h: f32, d: f32| {
-            let e = acc.entry(k).or_insert((0.0, 0.0));
-            e.0 += h;
-            e.1 += d;
-        };
+        let mut add = |k: CellKey<D>, h: f32, d: f32| sums.add(k, h, d);
         ends.clear();
         for b in &scan.beams {
             let dir = sensor.rotate(b.dir);
@@ -1391,12 +1383,12 @@ where
     // The cells in the order the map stores them: the look-ups below walk
     // the map's memory in order instead of in hash order, and the new
     // entries come out in storage order, as their insertion wants them.
-    cells.clear();
-    cells.extend(acc.iter().map(|(&k, &v)| (storage_order(k), k, v)));
-    cells.sort_unstable_by_key(|c| c.0);
+    sums.finish();
+    let cells = &sums.ordered;
     let mut new = Vec::with_capacity(cells.len() / 4);
-    let mut free = Vec::new();
-    for &(_, k, (h, d)) in cells.iter() {
+    // Most cells a scan crosses are free.
+    let mut free = Vec::with_capacity(if record_free { cells.len() } else { 0 });
+    for &(k, (h, d)) in cells.iter() {
         match entry_of(k) {
             Some(e) if shared_free && e.hits <= 0.0 && h <= 0.0 => {
                 if record_free && let Some(position) = position_of(k, e.node) {
@@ -1419,22 +1411,27 @@ where
     Observation { new, free, starts }
 }
 
-/// `free` grouped by [`free_shard`] (a stable sort: each shard keeps
-/// storage order), with where each shard starts.
+/// `free` grouped by [`free_shard`] (a stable counting sort: each shard
+/// keeps storage order), with where each shard starts.
 fn by_shard<const D: usize>(
-    mut free: Vec<FreeShare<D>>,
+    free: Vec<FreeShare<D>>,
 ) -> (Vec<FreeShare<D>>, [usize; FREE_SHARDS + 1]) {
+    let shards: Vec<u8> = free.iter().map(|f| free_shard(f.cell) as u8).collect();
     let mut starts = [0; FREE_SHARDS + 1];
-    // The key is computed once per share: count the shards there.
-    free.sort_by_cached_key(|f| {
-        let s = free_shard(f.cell);
-        starts[s + 1] += 1;
-        s
-    });
+    for &s in &shards {
+        starts[s as usize + 1] += 1;
+    }
     for s in 0..FREE_SHARDS {
         starts[s + 1] += starts[s];
     }
-    (free, starts)
+    let mut next = starts;
+    let mut grouped = free.clone();
+    for (f, &s) in free.iter().zip(&shards) {
+        let at = &mut next[s as usize];
+        grouped[*at] = *f;
+        *at += 1;
+    }
+    (grouped, starts)
 }
 
 #[cfg(test)]

@@ -17,6 +17,14 @@ use crate::raycast::{CellKey, RayWalk, cell_of};
 pub trait Occupancy<const D: usize> {
     /// `(hits, distance m)` of cell `k`, or `None` if this particle never saw it.
     fn lookup(&mut self, k: CellKey<D>) -> Option<(f32, f32)>;
+
+    /// As [`Occupancy::lookup`], for tracing a beam: where the cell has no
+    /// hits, the path length may be left out (`Some((0.0, 0.0))`): the
+    /// stop probability is 0 whatever it is. Occupancies that can tell such
+    /// cells apart cheaply answer them here without a full look-up.
+    fn lookup_for_trace(&mut self, k: CellKey<D>) -> Option<(f32, f32)> {
+        self.lookup(k)
+    }
 }
 
 impl<const D: usize> Occupancy<D> for crate::dpmap::MapView<'_, D> {
@@ -24,12 +32,22 @@ impl<const D: usize> Occupancy<D> for crate::dpmap::MapView<'_, D> {
     fn lookup(&mut self, k: CellKey<D>) -> Option<(f32, f32)> {
         crate::dpmap::MapView::lookup(self, k)
     }
+
+    #[inline]
+    fn lookup_for_trace(&mut self, k: CellKey<D>) -> Option<(f32, f32)> {
+        crate::dpmap::MapView::lookup_for_trace(self, k)
+    }
 }
 
 impl<const D: usize> Occupancy<D> for crate::dpmap::CachedView<'_, '_, D> {
     #[inline]
     fn lookup(&mut self, k: CellKey<D>) -> Option<(f32, f32)> {
         self.view.lookup_cached(self.cache, k)
+    }
+
+    #[inline]
+    fn lookup_for_trace(&mut self, k: CellKey<D>) -> Option<(f32, f32)> {
+        self.view.lookup_for_trace_cached(self.cache, k)
     }
 }
 
@@ -132,7 +150,7 @@ impl LaserModel {
         let mut eval = 0.0f64;
         for c in RayWalk::new(origin, dir, t0, t1, self.cell) {
             let len = c.t_out - c.t_in;
-            let p = reach * self.stop_probability(view.lookup(c.cell), len);
+            let p = reach * self.stop_probability(view.lookup_for_trace(c.cell), len);
             if p > 0.0 {
                 let err = (0.5 * (c.t_in + c.t_out) - range).abs();
                 if err < self.max_error {

@@ -61,6 +61,8 @@ pub struct ScanMatcher2d {
     last: Mutex<LastFields>,
     /// `ln(floor + (1 − floor)·q/255)` over the field's byte values `q`.
     log_field: [f64; 256],
+    /// The fields' point kernel (it depends on the settings only).
+    kernel: Kernel,
 }
 
 /// The fields one [`ScanRegistration::propose`] call built: per particle of
@@ -97,11 +99,13 @@ impl ScanMatcher2d {
     /// `variance` (m²).
     pub fn new(cfg: ScanMatchConfig, motion: CdtModel, cell: f64, variance: f64) -> Self {
         let cfg_floor = cfg.floor;
+        let kernel = Kernel::new(cfg.field_cells.max(1.0) * cell, cfg.sigma);
         Self {
             cfg,
             motion,
             cell,
             variance,
+            kernel,
             last: Mutex::new(LastFields::default()),
             log_field: log_table(cfg_floor),
         }
@@ -158,7 +162,7 @@ impl ScanMatcher2d {
             hi,
             self.res(),
             self.cfg.coarse_factor,
-            self.cfg.sigma,
+            &self.kernel,
             occupied,
         )
     }
@@ -194,28 +198,28 @@ struct Field {
     coarse: Vec<u8>,
 }
 
-impl Field {
-    /// Rasterises `occupied` (map-frame centres, m, with stop
-    /// probabilities) into a field covering `[lo, hi]` (m).
-    fn new(
-        lo: [f64; 2],
-        hi: [f64; 2],
-        res: f64,
-        f: usize,
-        sigma: f64,
-        occupied: &[([f64; 2], f64)],
-    ) -> Self {
-        let w = (((hi[0] - lo[0]) / res).ceil() as usize).max(1);
-        let h = (((hi[1] - lo[1]) / res).ceil() as usize).max(1);
-        let mut fine = vec![0u8; w * h];
+/// Sub-cell bins per axis of a [`Kernel`].
+const SUB: usize = 16;
+
+/// A field's point kernel: the Gaussian of σ around a point at sub-cell
+/// offset bin (bx, by) of [`SUB`] per axis (≤ res / 32 from the point's
+/// true offset), over the cells within 2σ, scaled to 0..=255: no
+/// exponential per point and cell.
+#[derive(Debug, Clone)]
+struct Kernel {
+    /// Cells on each side of the point's cell.
+    reach: isize,
+    /// `SUB × SUB` blocks of `span × span` values, `span = 2·reach + 1`.
+    table: Vec<f32>,
+}
+
+impl Kernel {
+    /// The kernel of σ `sigma` (m) on cells of `res` m.
+    fn new(res: f64, sigma: f64) -> Self {
         let reach = (2.0 * sigma / res).ceil() as isize;
         let inv = 1.0 / (2.0 * sigma * sigma);
-        // The kernel around a point at sub-cell offset bin (bx, by) of
-        // `SUB` per axis (≤ res / 32 from the point's true offset): no
-        // exponential per point and cell.
-        const SUB: usize = 16;
         let span = (2 * reach + 1) as usize;
-        let mut kernel = vec![0.0f32; SUB * SUB * span * span];
+        let mut table = vec![0.0f32; SUB * SUB * span * span];
         for by in 0..SUB {
             for bx in 0..SUB {
                 let (ox, oy) = (
@@ -227,12 +231,34 @@ impl Field {
                         // Cell centre minus point, in cells.
                         let xc = (di as f64 - reach as f64 + 0.5 - ox) * res;
                         let yc = (dj as f64 - reach as f64 + 0.5 - oy) * res;
-                        kernel[((by * SUB + bx) * span + dj) * span + di] =
+                        table[((by * SUB + bx) * span + dj) * span + di] =
                             (255.0 * (-(xc * xc + yc * yc) * inv).exp()) as f32;
                     }
                 }
             }
         }
+        Self { reach, table }
+    }
+}
+
+impl Field {
+    /// Rasterises `occupied` (map-frame centres, m, with stop
+    /// probabilities) into a field covering `[lo, hi]` (m), with `kernel`
+    /// (made for cells of `res` m).
+    fn new(
+        lo: [f64; 2],
+        hi: [f64; 2],
+        res: f64,
+        f: usize,
+        kernel: &Kernel,
+        occupied: &[([f64; 2], f64)],
+    ) -> Self {
+        let w = (((hi[0] - lo[0]) / res).ceil() as usize).max(1);
+        let h = (((hi[1] - lo[1]) / res).ceil() as usize).max(1);
+        let mut fine = vec![0u8; w * h];
+        let reach = kernel.reach;
+        let span = (2 * reach + 1) as usize;
+        let kernel = &kernel.table;
         for &(p, occ) in occupied {
             let u = (p[0] - lo[0]) / res;
             let v = (p[1] - lo[1]) / res;
@@ -261,10 +287,10 @@ impl Field {
         let f = f.max(1);
         let (cw, ch) = (w.div_ceil(f), h.div_ceil(f));
         let mut block = vec![0u8; cw * ch];
-        for j in 0..h {
-            for i in 0..w {
-                let b = &mut block[(j / f) * cw + i / f];
-                *b = (*b).max(fine[j * w + i]);
+        for (j, row) in fine.chunks_exact(w).enumerate() {
+            let blocks = &mut block[(j / f) * cw..][..cw];
+            for (b, run) in blocks.iter_mut().zip(row.chunks(f)) {
+                *b = (*b).max(run.iter().copied().max().unwrap_or(0));
             }
         }
         let mut coarse = vec![0u8; cw * ch];
@@ -870,17 +896,27 @@ fn wall_cells(cells: &[[i32; 2]], radius: i32) -> Vec<bool> {
     let h = (hi[1] - lo[1] + 1) as usize;
     let index = |k: &[i32; 2]| (k[1] - lo[1]) as usize * w + (k[0] - lo[0]) as usize;
     let r = radius;
-    // Offsets and grid indices of the disc of radius `r` around `k`,
-    // clipped to the box.
-    let disc = move |k: &[i32; 2]| {
+    // The disc of radius `r`: offsets, row by row, with their grid steps.
+    let offsets: Vec<(i32, i32, isize)> = (-r..=r)
+        .flat_map(|dy| {
+            (-r..=r)
+                .filter(move |dx| dx * dx + dy * dy <= r * r)
+                .map(move |dx| (dx, dy, dy as isize * w as isize + dx as isize))
+        })
+        .collect();
+    // Offsets and grid indices of the disc around `k`, clipped to the box
+    // (a disc inside the box, the usual case, needs no test per offset).
+    let disc = |k: &[i32; 2]| {
         let (cx, cy) = (k[0] - lo[0], k[1] - lo[1]);
-        (-r..=r).flat_map(move |dy| {
-            (-r..=r).filter_map(move |dx| {
-                let (x, y) = (cx + dx, cy + dy);
-                let inside = x >= 0 && x < w as i32 && y >= 0 && y < h as i32;
-                (inside && dx * dx + dy * dy <= r * r)
-                    .then(|| (dx, dy, y as usize * w + x as usize))
-            })
+        let centre = cy as isize * w as isize + cx as isize;
+        let inside = cx >= r && cy >= r && cx + r < w as i32 && cy + r < h as i32;
+        offsets.iter().filter_map(move |&(dx, dy, step)| {
+            let (x, y) = (cx + dx, cy + dy);
+            (inside || (x >= 0 && x < w as i32 && y >= 0 && y < h as i32)).then_some((
+                dx,
+                dy,
+                (centre + step) as usize,
+            ))
         })
     };
     let mut grid = vec![false; w * h];
@@ -1047,7 +1083,7 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
             .flat_map_iter(|by| {
                 let mut out = Vec::new();
                 for bx in bx0..=bx1 {
-                    ctx.map.for_each_cell_in_brick([bx, by], |k, list| {
+                    ctx.map.for_each_hit_cell_in_brick([bx, by], |k, list| {
                         if list.iter().any(|e| c.field_keeps(e.hits)) {
                             let seen = match seen_alike(list) {
                                 Some(Some(e)) if c.field_keeps(e.hits) => Seen::Alike(Some(e)),

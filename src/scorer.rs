@@ -132,12 +132,113 @@ fn this_threads<T>(slots: &[Mutex<T>]) -> std::sync::MutexGuard<'_, T> {
 /// Working memory for summing a traced scan per cell: kept per thread, so
 /// that each trace reuses the last one's tables instead of growing new
 /// ones (the map update traces every new particle's scan, every step).
+///
+/// The sums are kept by tiles of 64 cells: the map brick's quarters (2-D)
+/// or eighths (3-D), which its storage order visits one after the other.
+/// A trace step finds its tile by one comparison with the last step's (a
+/// ray's cells come tile by tile), and the cells come out in the map's
+/// storage order by sorting the tiles, not the cells. (Whole bricks would
+/// spend 16 times the memory on the cells between a scan's far rays.)
 #[derive(Debug, Default)]
 pub struct CellSums<const D: usize> {
-    /// Cell → (hits, path length m) of the scans traced so far.
-    pub(crate) by_cell: FxHashMap<CellKey<D>, (f32, f32)>,
-    /// The same in storage order, with each cell's sort key.
-    pub(crate) ordered: Vec<(u128, CellKey<D>, (f32, f32))>,
+    /// Tile (brick key, tile in the brick) → its slot in `tiles`.
+    slot_of: FxHashMap<(CellKey<D>, u32), u32>,
+    /// Slots; the first `slot_of.len()` are in use (the rest keep their
+    /// memory for the next trace).
+    tiles: Vec<TileSums<D>>,
+    /// The last step's tile and slot.
+    last: Option<((CellKey<D>, u32), u32)>,
+    /// The sums of [`CellSums::finish`], in storage order.
+    pub(crate) ordered: Vec<(CellKey<D>, (f32, f32))>,
+}
+
+/// Cells per [`CellSums`] tile: the bits of a `u64`.
+const TILE: usize = 64;
+
+/// One tile's per-cell sums.
+#[derive(Debug)]
+struct TileSums<const D: usize> {
+    /// Brick key and tile in the brick.
+    key: (CellKey<D>, u32),
+    /// Bit `i`: cell `i` has a sum (the others hold stale values).
+    touched: u64,
+    /// (hits, path length m) per cell of the tile.
+    sums: [(f32, f32); TILE],
+}
+
+impl<const D: usize> CellSums<D> {
+    /// Forgets the sums, keeping the memory.
+    pub(crate) fn clear(&mut self) {
+        self.slot_of.clear();
+        self.last = None;
+        self.ordered.clear();
+    }
+
+    /// Adds `(hits, path length m)` to cell `k`.
+    #[inline]
+    pub(crate) fn add(&mut self, k: CellKey<D>, hits: f32, distance: f32) {
+        let (b, i) = crate::dpmap::split(k);
+        // The top bits of the in-brick (Morton) index pick the tile.
+        let key = (b, (i / TILE) as u32);
+        let slot = match self.last {
+            Some((lk, slot)) if lk == key => slot,
+            _ => {
+                let slot = self.slot(key);
+                self.last = Some((key, slot));
+                slot
+            }
+        };
+        let tile = &mut self.tiles[slot as usize];
+        let bit = 1u64 << (i % TILE);
+        if tile.touched & bit == 0 {
+            tile.touched |= bit;
+            tile.sums[i % TILE] = (0.0, 0.0);
+        }
+        let e = &mut tile.sums[i % TILE];
+        e.0 += hits;
+        e.1 += distance;
+    }
+
+    /// The slot of tile `key`, taken on its first use.
+    fn slot(&mut self, key: (CellKey<D>, u32)) -> u32 {
+        let used = self.slot_of.len() as u32;
+        let slot = *self.slot_of.entry(key).or_insert(used);
+        if slot == used {
+            if self.tiles.len() == used as usize {
+                debug_assert_eq!(DpMap::<D>::brick_cells() % TILE, 0);
+                self.tiles.push(TileSums {
+                    key,
+                    touched: 0,
+                    sums: [(0.0, 0.0); TILE],
+                });
+            }
+            let tile = &mut self.tiles[slot as usize];
+            tile.key = key;
+            tile.touched = 0;
+        }
+        slot
+    }
+
+    /// Puts the sums into `ordered`, in the map's storage order
+    /// ([`crate::dpmap::storage_order`]): bricks by key, cells by index.
+    pub(crate) fn finish(&mut self) {
+        let used = &mut self.tiles[..self.slot_of.len()];
+        used.sort_unstable_by_key(|t| t.key);
+        self.ordered.clear();
+        for tile in used.iter() {
+            let (b, t) = tile.key;
+            let mut bits = tile.touched;
+            while bits != 0 {
+                let i = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                self.ordered
+                    .push((crate::dpmap::join(b, t as usize * TILE + i), tile.sums[i]));
+            }
+        }
+        // The slots moved: the next trace starts afresh.
+        self.slot_of.clear();
+        self.last = None;
+    }
 }
 
 impl<const D: usize> Default for CpuScorer<D> {
