@@ -76,7 +76,8 @@ struct Brick {
     /// Tracing a beam needs no more than that (its stop probability is 0),
     /// and most cells a beam crosses are such: the bit spares the look-up
     /// of their lists ([`MapView::lookup_for_trace`]). Kept by every edit of
-    /// a list's nodes or hits ([`DpMap::edit_cell`]).
+    /// a list's nodes or hits ([`DpMap::edit_cell`], and the appends of
+    /// [`DpMap::insert_fresh_nodes`]).
     clear: [u64; 8],
     /// Bit `i`: cell `i`'s list holds an entry with hits (the scan
     /// matcher's field is built from these cells only; most cells have
@@ -90,7 +91,7 @@ struct Brick {
 
 impl Brick {
     fn new(cells: usize) -> Self {
-        debug_assert!(cells <= 64 * 8, "a brick's clear bits cover 512 cells");
+        debug_assert!(cells <= 64 * 8, "a brick's bitmasks cover 512 cells");
         Self {
             cells: vec![CellList::new(); cells].into_boxed_slice(),
             clear: [0; 8],
@@ -327,7 +328,7 @@ impl<const D: usize> DpMap<D> {
     }
 
     /// A list whose entries' path lengths an op edits, and nothing else
-    /// (their nodes and hits stay: the brick's clear bits stay true). Called
+    /// (their nodes and hits stay: the brick's clear and hit bits stay true). Called
     /// after the op has taken a new version, which stamps the brick.
     fn cell_mut(&mut self, k: CellKey<D>) -> &mut CellList {
         let (b, i) = split(k);
@@ -335,7 +336,7 @@ impl<const D: usize> DpMap<D> {
     }
 
     /// Every other edit of a list goes through here: `edit` may change the
-    /// list in any way; the cell's clear bit is then recomputed. Called
+    /// list in any way; the cell's clear and hit bits are then recomputed. Called
     /// after the op has taken a new version, which stamps the brick.
     fn edit_cell<R>(&mut self, k: CellKey<D>, edit: impl FnOnce(&mut CellList) -> R) -> R {
         let (b, i) = split(k);
@@ -572,23 +573,29 @@ impl<const D: usize> DpMap<D> {
             let k = cells[start].0;
             let end = start + cells[start..].iter().take_while(|c| c.0 == k).count();
             let removed = end - start;
-            if removed * 4 >= self.cell(k).len() {
-                self.edit_cell(k, |list| {
-                    let mut w = 0;
-                    for r in 0..list.len() {
-                        let e = list[r];
-                        if is_dead.get(e.node as usize).copied().unwrap_or(false) {
-                            continue;
-                        }
-                        if w != r {
-                            list[w] = e;
-                            moved.push((e.node, k, w as u32));
-                        }
-                        w += 1;
+            // One brick look-up per cell: the closure itself decides
+            // between compaction and the swaps below.
+            let compacted = self.edit_cell(k, |list| {
+                if removed * 4 < list.len() {
+                    return false;
+                }
+                let mut w = 0;
+                for r in 0..list.len() {
+                    let e = list[r];
+                    if is_dead.get(e.node as usize).copied().unwrap_or(false) {
+                        continue;
                     }
-                    list.truncate(w);
-                    list.give_back_spare();
-                });
+                    if w != r {
+                        list[w] = e;
+                        moved.push((e.node, k, w as u32));
+                    }
+                    w += 1;
+                }
+                list.truncate(w);
+                list.give_back_spare();
+                true
+            });
+            if compacted {
                 self.entries -= removed;
             } else {
                 // Highest position first: the entry a swap moves comes from

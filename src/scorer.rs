@@ -137,8 +137,9 @@ fn this_threads<T>(slots: &[Mutex<T>]) -> std::sync::MutexGuard<'_, T> {
 /// or eighths (3-D), which its storage order visits one after the other.
 /// A trace step finds its tile by one comparison with the last step's (a
 /// ray's cells come tile by tile), and the cells come out in the map's
-/// storage order by sorting the tiles, not the cells. (Whole bricks would
-/// spend 16 times the memory on the cells between a scan's far rays.)
+/// storage order by sorting the tiles, not the cells. (A 2-D slot holds a
+/// quarter of a brick's cells: less memory spent on the untouched cells
+/// between a scan's far rays.)
 #[derive(Debug, Default)]
 pub struct CellSums<const D: usize> {
     /// Tile (brick key, tile in the brick) → its slot in `tiles`.
