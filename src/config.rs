@@ -247,6 +247,14 @@ pub struct ScanMatchConfig {
     /// fill in the field, fr079 and fr079-raw were lost at a narrow passage
     /// (docs/PROPOSAL-2D.md, sessions 29 and 30).
     pub field_min_hits: f64,
+    /// Share of a matched particle's proposal that is the motion model
+    /// itself (its Gaussian around the odometry, in [0, 1)): a defensive
+    /// mixture (Hesterberg 1995). Where the match is confidently wrong (the
+    /// scan is mostly a close occluder and no-returns), the samples drawn
+    /// from the motion part still cover the odometry, and the importance
+    /// weights (DP likelihood × motion prior / mixture density, which the
+    /// motion part bounds by 1 / share) choose. 0 = the match alone.
+    pub motion_share: f64,
 }
 
 /// What a cell with hits weighs in the scan matcher's likelihood field
@@ -311,6 +319,7 @@ impl Default for ScanMatchConfig {
             wall_radius: 0.15,
             odometry_peak_share: 0.0,
             field_min_hits: 1.0,
+            motion_share: 0.0,
         }
     }
 }
@@ -936,6 +945,10 @@ impl Config {
             &[("field_min_hits", self.scan_match.field_min_hits)],
             true,
         )?;
+        let ms = self.scan_match.motion_share;
+        if !(ms.is_finite() && (0.0..1.0).contains(&ms)) {
+            return bad("scan_match.motion_share must be in [0, 1)");
+        }
         let h = &self.hierarchy;
         if h.window == 0 || h.particles == 0 || h.samples_per_particle == 0 {
             return bad("hierarchy.window, particles and samples_per_particle must be at least 1");
@@ -1126,6 +1139,21 @@ mod tests {
             c.scan_match.field_min_hits = bad;
             let e = c.validate().unwrap_err().to_string();
             assert!(e.contains("field_min_hits"), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn a_motion_share_outside_zero_to_one_is_a_config_error() {
+        for bad in [f64::NAN, -0.1, 1.0, 2.0, f64::INFINITY] {
+            let mut c = Config::default();
+            c.scan_match.motion_share = bad;
+            let e = c.validate().unwrap_err().to_string();
+            assert!(e.contains("motion_share"), "{bad}: {e}");
+        }
+        for ok in [0.0, 0.2, 0.99] {
+            let mut c = Config::default();
+            c.scan_match.motion_share = ok;
+            assert!(c.validate().is_ok(), "{ok}");
         }
     }
 

@@ -835,6 +835,41 @@ impl ScanMatcher2d {
         )
     }
 
+    /// `q` joined by the motion model's Gaussian around `odometry` (a
+    /// component with probability `motion_share`), or `q` itself where
+    /// the share is 0 or that Gaussian is singular.
+    fn defend(&self, q: Proposal<Pose2>, odometry: &Pose2) -> Proposal<Pose2> {
+        let share = self.cfg.motion_share;
+        if share <= 0.0 {
+            return q;
+        }
+        let (mu, sigma) = self.motion.local_gaussian(odometry);
+        // Body frame of the mean, as in `fuse`.
+        let rb = rot3(-mu[2]);
+        let body = rb * sigma * rb.transpose();
+        let body = (body + body.transpose()) * 0.5;
+        let Some(Proposal::Matched {
+            delta: dm,
+            factor: lm,
+        }) = Proposal::matched(
+            pose2(mu[0], mu[1], mu[2]),
+            DMatrix::from_column_slice(3, 3, body.as_slice()),
+        )
+        else {
+            return q;
+        };
+        let mut parts = match q {
+            Proposal::Matched { delta, factor } => vec![(1.0 - share, delta, factor)],
+            Proposal::Mixture(parts) => parts
+                .into_iter()
+                .map(|(w, d, f)| (w * (1.0 - share), d, f))
+                .collect(),
+            other => return other,
+        };
+        parts.push((share, dm, lm));
+        Proposal::Mixture(parts)
+    }
+
     /// The searched peak's proposal `best` of a particle at `prev`, joined
     /// by `near` (the peak nearest the odometry guess) with probability
     /// `odometry_peak_share` where `near`'s mean lies outside 3 σ of
@@ -1184,6 +1219,7 @@ impl ScanRegistration<2, Pose2> for ScanMatcher2d {
                                 None => q,
                             }
                         })
+                        .map(|q| self.defend(q, ctx.odometry))
                         .unwrap_or(Proposal::Motion);
                         known.push((key, q.clone()));
                         (i, q, field.clone())
@@ -1373,6 +1409,54 @@ mod tests {
             m.mix(&prev, fused(&far), fused(&far)),
             Proposal::Matched { .. }
         ));
+    }
+
+    /// A match 30° off the odometry (a confident wrong peak) with
+    /// `motion_share` 0.2: a fifth of the samples land around the motion
+    /// model's mean, and a sample at the odometry weighs at most about
+    /// 1 / share times its likelihood; with the share at 0 the match is
+    /// left alone.
+    #[test]
+    fn a_motion_share_keeps_samples_at_the_odometry_under_a_wrong_match() {
+        use crate::motion_model::MotionModel;
+        use rand::SeedableRng;
+        let mut m = matcher();
+        let prev = pose2(1.0, 2.0, 0.3);
+        let odometry = pose2(0.3, 0.0, 0.05);
+        let info = Matrix3::from_diagonal(&Vector3::new(1e4, 1e4, 1e5));
+        let wrong = prev * odometry * pose2(0.0, 0.0, 30f64.to_radians());
+        let matched = m.fuse(&prev, &odometry, &wrong, &info).unwrap();
+        assert_eq!(m.defend(matched.clone(), &odometry), matched);
+        m.cfg.motion_share = 0.2;
+        let Proposal::Mixture(parts) = m.defend(matched.clone(), &odometry) else {
+            panic!("a motion share makes a mixture");
+        };
+        assert_eq!(parts.len(), 2);
+        assert_eq!((parts[0].0, parts[1].0), (0.8, 0.2));
+        let mix = Proposal::Mixture(parts);
+        let at_odometry = prev * odometry;
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+        let n = 20000;
+        let near = (0..n)
+            .filter(|_| {
+                let p: Pose2 = mix.sample::<2>(&m.motion, &prev, &odometry, &mut rng);
+                let e = at_odometry.inverse() * p;
+                e.rotation.angle().abs() < 15f64.to_radians()
+            })
+            .count();
+        let share = near as f64 / n as f64;
+        assert!((share - 0.2).abs() < 0.015, "{share}");
+        // Importance weight at the odometry: motion density / mixture
+        // density, bounded by the motion part; the match alone would
+        // give it almost nothing to weigh.
+        let r_mix = mix.log_ratio::<2>(&m.motion, &prev, &odometry, &at_odometry);
+        assert!(r_mix <= (1.0f64 / 0.2).ln() + 0.1, "{r_mix}");
+        assert!(r_mix > 0.0, "{r_mix}");
+        assert!(
+            m.motion
+                .log_density(&prev, &odometry, &at_odometry)
+                .is_some()
+        );
     }
 
     /// A corridor whose walls carry posts every 0.5 m: two poses 0.5 m
