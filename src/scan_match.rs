@@ -825,14 +825,7 @@ impl ScanMatcher2d {
         let info_p = sigma_p.try_inverse()?;
         let sigma = (info_m + info_p).try_inverse()?;
         let mu = sigma * (info_m * mu_m + info_p * Vector3::new(mu_p[0], mu_p[1], mu_p[2]));
-        // Body frame of the mean: `pose2(μ) · pose2(ξ)` moves by R(μθ)·ξ_xy.
-        let rb = rot3(-mu[2]);
-        let body = rb * sigma * rb.transpose();
-        let body = (body + body.transpose()) * 0.5;
-        Proposal::matched(
-            pose2(mu[0], mu[1], mu[2]),
-            DMatrix::from_column_slice(3, 3, body.as_slice()),
-        )
+        local_proposal([mu[0], mu[1], mu[2]], &sigma)
     }
 
     /// `q` joined by the motion model's Gaussian around `odometry` (a
@@ -844,17 +837,10 @@ impl ScanMatcher2d {
             return q;
         }
         let (mu, sigma) = self.motion.local_gaussian(odometry);
-        // Body frame of the mean, as in `fuse`.
-        let rb = rot3(-mu[2]);
-        let body = rb * sigma * rb.transpose();
-        let body = (body + body.transpose()) * 0.5;
         let Some(Proposal::Matched {
             delta: dm,
             factor: lm,
-        }) = Proposal::matched(
-            pose2(mu[0], mu[1], mu[2]),
-            DMatrix::from_column_slice(3, 3, body.as_slice()),
-        )
+        }) = local_proposal(mu, &sigma)
         else {
             return q;
         };
@@ -899,6 +885,20 @@ impl ScanMatcher2d {
             (share, *dn, ln.clone()),
         ])
     }
+}
+
+/// The matched proposal N(`mu`, `sigma`) of a motion in the previous robot
+/// frame (`[x m, y m, θ rad]`), its covariance turned into the body frame
+/// of the mean (`pose2(μ) · pose2(ξ)` moves by R(μθ)·ξ_xy); `None` if it is
+/// not positive definite.
+fn local_proposal(mu: [f64; 3], sigma: &Matrix3<f64>) -> Option<Proposal<Pose2>> {
+    let rb = rot3(-mu[2]);
+    let body = rb * sigma * rb.transpose();
+    let body = (body + body.transpose()) * 0.5;
+    Proposal::matched(
+        pose2(mu[0], mu[1], mu[2]),
+        DMatrix::from_column_slice(3, 3, body.as_slice()),
+    )
 }
 
 /// Hit cells a wall test needs around a cell to call it part of a wall.
