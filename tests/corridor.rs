@@ -68,7 +68,13 @@ fn deficit_at_truth(
     let mut last: Option<Pose2> = None;
     for (index, item) in reader.enumerate() {
         let s = item.unwrap();
-        let scan = to_scan(&s.as_ranges(), mount, cfg.laser.max_beams, MAX_RANGE);
+        let scan = to_scan(
+            &s.as_ranges(),
+            mount,
+            cfg.laser.max_beams,
+            MAX_RANGE,
+            cfg.laser.no_return,
+        );
         let Some(f) = filter.as_mut() else {
             let laser = LaserModel::new(&cfg.laser, cfg.cell_size(), MAX_RANGE);
             filter = Some(new_filter(&cfg, laser, &scan, index as u32));

@@ -63,14 +63,26 @@ pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<Prepare
         let index = index as u32;
         if first.is_none() {
             max_range = ranges.usable_range(cfg, reading.max_range);
-            first = Some(to_scan(&reading, sensor, cfg.laser.max_beams, max_range));
+            first = Some(to_scan(
+                &reading,
+                sensor,
+                cfg.laser.max_beams,
+                max_range,
+                cfg.laser.no_return,
+            ));
             last_odo = s.odometry;
         } else {
             let delta = last_odo.inverse() * s.odometry;
             if moved_enough(f, &delta) {
                 steps.push(PreparedStep {
                     delta,
-                    scan: to_scan(&reading, sensor, cfg.laser.max_beams, max_range),
+                    scan: to_scan(
+                        &reading,
+                        sensor,
+                        cfg.laser.max_beams,
+                        max_range,
+                        cfg.laser.no_return,
+                    ),
                     index,
                 });
                 last_odo = s.odometry;

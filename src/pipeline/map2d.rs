@@ -365,7 +365,13 @@ pub fn refine_trajectory2d(
         Ok(reader.map(move |item| {
             let s = item?;
             let reading = s.as_ranges().with_no_return_at(no_return_at);
-            let scan = crate::slam::slam2d::to_scan(&reading, mount, usize::MAX, max_range);
+            let scan = crate::slam::slam2d::to_scan(
+                &reading,
+                mount,
+                usize::MAX,
+                max_range,
+                cfg.laser.no_return,
+            );
             Ok(scan.returns_in_robot_frame())
         }))
     };
@@ -591,6 +597,7 @@ pub fn run_map2d_observed(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::NoReturn;
     use crate::scan::Scan;
     use crate::slam::slam2d::to_scan;
 
@@ -615,7 +622,7 @@ mod tests {
     fn a_configured_range_above_the_declared_maximum_keeps_real_returns() {
         let s = scan(vec![5.0, 15.0, 10.0, f64::NAN, 25.0], 10.0);
         // Default: the declared 10 m rules.
-        let d = to_scan(&s.as_ranges(), Pose2::identity(), 181, 10.0);
+        let d = to_scan(&s.as_ranges(), Pose2::identity(), 181, 10.0, NoReturn::Free);
         assert_eq!(
             flags(&d),
             [
@@ -627,7 +634,7 @@ mod tests {
             ]
         );
         // laser.max_range = 20 above the declared 10 m: 15 m is a return.
-        let c = to_scan(&s.as_ranges(), Pose2::identity(), 181, 20.0);
+        let c = to_scan(&s.as_ranges(), Pose2::identity(), 181, 20.0, NoReturn::Free);
         assert_eq!(
             flags(&c),
             [
@@ -640,8 +647,56 @@ mod tests {
         );
         // A usable range below the declared maximum changes nothing but the cut.
         let s = scan(vec![5.0, 15.0, 81.9], 81.9);
-        let u = to_scan(&s.as_ranges(), Pose2::identity(), 181, 20.0);
+        let u = to_scan(&s.as_ranges(), Pose2::identity(), 181, 20.0, NoReturn::Free);
         assert_eq!(flags(&u), [(false, 5.0), (false, 15.0), (true, 20.0)]);
+    }
+
+    #[test]
+    fn skipped_no_returns_leave_the_scan_and_returns_beyond_the_usable_range_stay() {
+        // The sensor's own "no return": NaN, ±inf, ≤ 0 and its 81.91 code.
+        let s = scan(
+            vec![5.0, f64::NAN, 81.91, 30.0, 0.0, f64::INFINITY, 7.0],
+            81.91,
+        );
+        let free = to_scan(&s.as_ranges(), Pose2::identity(), 181, 20.0, NoReturn::Free);
+        assert_eq!(free.beams.len(), 7);
+        let skip = to_scan(&s.as_ranges(), Pose2::identity(), 181, 20.0, NoReturn::Skip);
+        // The 30 m return lies beyond the usable 20 m: free space to there,
+        // whatever `no_return` says.
+        assert_eq!(flags(&skip), [(false, 5.0), (true, 20.0), (false, 7.0)]);
+        // The kept beams keep their directions.
+        let angle = |b: &crate::scan::Beam<2>| b.dir[1].atan2(b.dir[0]);
+        let kept: Vec<f64> = skip.beams.iter().map(angle).collect();
+        let all: Vec<f64> = free.beams.iter().map(angle).collect();
+        assert_eq!(kept, [all[0], all[3], all[6]]);
+        // A reading of nothing but "no return" leaves no beam at all.
+        let none = scan(vec![f64::NAN, 81.91], 81.91);
+        let skip = to_scan(
+            &none.as_ranges(),
+            Pose2::identity(),
+            181,
+            20.0,
+            NoReturn::Skip,
+        );
+        assert!(skip.beams.is_empty());
+        // The default skips where the laser reaches beyond the usable
+        // range (81.91 m against 20 m) ...
+        let auto = to_scan(&s.as_ranges(), Pose2::identity(), 181, 20.0, NoReturn::Auto);
+        let skip = to_scan(&s.as_ranges(), Pose2::identity(), 181, 20.0, NoReturn::Skip);
+        assert_eq!(flags(&auto), flags(&skip));
+        // ... and keeps "nothing within reach" where it does not (8 m).
+        let short = scan(vec![5.0, f64::NAN, 8.0, 7.0], 8.0);
+        let auto = to_scan(
+            &short.as_ranges(),
+            Pose2::identity(),
+            181,
+            8.0,
+            NoReturn::Auto,
+        );
+        assert_eq!(
+            flags(&auto),
+            [(false, 5.0), (true, 8.0), (true, 8.0), (false, 7.0)]
+        );
     }
 
     #[test]
@@ -666,7 +721,7 @@ mod tests {
         // range are kept and the saturated readings mean "no return".
         let mut s = scan(vec![5.0, 15.0, 51.15, 30.0], 10.0);
         s.max_range = 51.15;
-        let u = to_scan(&s.as_ranges(), Pose2::identity(), 181, 20.0);
+        let u = to_scan(&s.as_ranges(), Pose2::identity(), 181, 20.0, NoReturn::Free);
         assert_eq!(
             flags(&u),
             [(false, 5.0), (false, 15.0), (true, 20.0), (true, 20.0)]

@@ -2,7 +2,7 @@
 
 use super::{Estimate, check_input, fill_trajectory};
 use crate::ancestry::{NodeId, Numbering};
-use crate::config::{Config, FilterConfig, Motion2dConfig, ProposalKind};
+use crate::config::{Config, FilterConfig, Motion2dConfig, NoReturn, ProposalKind};
 use crate::dpmap::DpMap;
 use crate::filter::{ParticleFilter, Stamp, StepInput, StepStats};
 use crate::geometry::{Pose2, pose2};
@@ -45,6 +45,9 @@ pub fn usable_range(cfg: &Config, sensor_max: f64, cap: f64) -> f64 {
 
 /// Converts one reading to the filter's form: evenly thinned to at most
 /// `max_beams` beams, readings beyond `max_range` (m), or none, as "no return".
+/// Where `flagged` says so ([`NoReturn::skips`]), the beams the sensor flags
+/// as "no return" are left out after the thinning (those beyond `max_range`
+/// stay, as free space).
 ///
 /// Readings at or above the reading's declared maximum (`s.max_range`) are
 /// "no return" too, unless `max_range` is above that maximum: a configured
@@ -56,22 +59,28 @@ pub fn to_scan(
     sensor: Pose2,
     max_beams: usize,
     max_range: f64,
+    flagged: NoReturn,
 ) -> Scan<2, Pose2> {
     let n = s.ranges.len();
     let stride = n.div_ceil(max_beams.max(1)).max(1);
     let trust_beyond_declared = max_range > s.max_range;
+    let skip_flagged = flagged.skips(s.max_range, max_range);
     let beams = (0..n)
         .step_by(stride)
-        .map(|i| {
+        .filter_map(|i| {
             let a = s.angle_min + i as f64 * s.angle_increment;
             let r = s.ranges[i];
             let kept = trust_beyond_declared && r.is_finite() && r > 0.0;
-            let no_return = (s.is_no_return(i) && !kept) || r > max_range;
-            Beam {
+            let sensor_says_none = s.is_no_return(i) && !kept;
+            if sensor_says_none && skip_flagged {
+                return None;
+            }
+            let no_return = sensor_says_none || r > max_range;
+            Some(Beam {
                 dir: [a.cos(), a.sin()],
                 range: if no_return { max_range } else { r },
                 no_return,
-            }
+            })
         })
         .collect();
     Scan { sensor, beams }
@@ -352,6 +361,7 @@ impl Slam2d {
                         self.mount,
                         self.cfg.laser.max_beams,
                         self.max_range,
+                        self.cfg.laser.no_return,
                     );
                     if moved {
                         let input = StepInput {
@@ -384,7 +394,13 @@ impl Slam2d {
     fn start(&mut self, reading: &Ranges2d<'_>, index: u32) {
         let cfg = &self.cfg;
         self.max_range = usable_range(cfg, reading.max_range, self.range_cap);
-        let scan = to_scan(reading, self.mount, cfg.laser.max_beams, self.max_range);
+        let scan = to_scan(
+            reading,
+            self.mount,
+            cfg.laser.max_beams,
+            self.max_range,
+            cfg.laser.no_return,
+        );
         self.beams_per_scan = scan.beams.len();
         let laser = LaserModel::new(&cfg.laser, cfg.cell_size(), self.max_range);
         let mut filter = new_filter(cfg, laser, &scan, index);
