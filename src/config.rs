@@ -255,6 +255,15 @@ pub struct ScanMatchConfig {
     /// weights (DP likelihood × motion prior / mixture density, which the
     /// motion part bounds by 1 / share) choose. 0 = the match alone.
     pub motion_share: f64,
+    /// Grid spacing (m, robot frame) of the endpoints a scan is matched
+    /// with: the first return in each `endpoint_spacing`-wide square is kept
+    /// before the even thinning to `max_beams`, so that a surface close to
+    /// the laser, which an evenly spaced fan of beams samples densely, counts
+    /// as much per metre as a far one (the voxel filter of KISS-ICP and
+    /// Cartographer). 0 = off: every return is a candidate. The default,
+    /// 0.1 m, is two field σ: endpoints closer than that score the same
+    /// stretch of the field (docs/PROPOSAL-2D.md, session 35).
+    pub endpoint_spacing: f64,
 }
 
 /// What a 2-D reading the sensor flags as "no return" means
@@ -366,6 +375,7 @@ impl Default for ScanMatchConfig {
             odometry_peak_share: 0.0,
             field_min_hits: 1.0,
             motion_share: 0.0,
+            endpoint_spacing: 0.1,
         }
     }
 }

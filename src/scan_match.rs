@@ -111,11 +111,14 @@ impl ScanMatcher2d {
         }
     }
 
-    /// The returns of `scan` in the robot frame (m), evenly thinned to at
-    /// most `scan_match.max_beams`, and how many returns there were.
+    /// The returns of `scan` in the robot frame (m), one per
+    /// `scan_match.endpoint_spacing` square where that is set, evenly
+    /// thinned to at most `scan_match.max_beams`; and how many returns
+    /// there were.
     fn endpoints(&self, scan: &Scan<2, Pose2>) -> (Vec<[f64; 2]>, usize) {
         let returns = scan.returns_in_robot_frame();
         let beams = returns.len();
+        let returns = one_per_square(returns, self.cfg.endpoint_spacing);
         let stride = returns.len().div_ceil(self.cfg.max_beams.max(1)).max(1);
         (returns.into_iter().step_by(stride).collect(), beams)
     }
@@ -1272,9 +1275,63 @@ fn pose_bits(p: &Pose2) -> [u64; 4] {
     ]
 }
 
+/// The first of `points` (in order) in each `spacing`-wide square of the
+/// plane; all of them where `spacing` is not positive.
+fn one_per_square(points: Vec<[f64; 2]>, spacing: f64) -> Vec<[f64; 2]> {
+    if !(spacing > 0.0) {
+        return points;
+    }
+    let mut seen = rustc_hash::FxHashSet::default();
+    points
+        .into_iter()
+        .filter(|p| {
+            seen.insert([
+                (p[0] / spacing).floor() as i64,
+                (p[1] / spacing).floor() as i64,
+            ])
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn endpoint_spacing_keeps_one_return_per_square_in_beam_order() {
+        // A fan of 1° beams: 40 returns on a post 0.4 m ahead (1 cm apart)
+        // and 40 on a wall 8 m away (14 cm apart).
+        let near: Vec<[f64; 2]> = (0..40)
+            .map(|i| {
+                let a = (i as f64 - 20.0).to_radians();
+                [0.4 * a.cos(), 0.4 * a.sin()]
+            })
+            .collect();
+        let far: Vec<[f64; 2]> = (0..40)
+            .map(|i| {
+                let a = (i as f64 + 30.0).to_radians();
+                [8.0 * a.cos(), 8.0 * a.sin()]
+            })
+            .collect();
+        let all: Vec<[f64; 2]> = near.iter().chain(&far).copied().collect();
+        assert_eq!(one_per_square(all.clone(), 0.0), all);
+        let kept = one_per_square(all.clone(), 0.1);
+        let kept_near = kept.iter().filter(|p| p[0].hypot(p[1]) < 1.0).count();
+        // The post spans 0.28 m across: a handful of 0.1 m squares, not 40
+        // returns; the wall's returns are farther apart than a square.
+        assert!(
+            (2..=6).contains(&kept_near),
+            "{kept_near} near returns kept"
+        );
+        assert_eq!(kept.len() - kept_near, 40);
+        // Kept in beam order, each the first of its square.
+        let pos: Vec<usize> = kept
+            .iter()
+            .map(|k| all.iter().position(|p| p == k).unwrap())
+            .collect();
+        assert!(pos.windows(2).all(|w| w[0] < w[1]));
+        assert_eq!(pos[0], 0);
+    }
 
     fn matcher() -> ScanMatcher2d {
         ScanMatcher2d::new(
