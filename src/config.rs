@@ -1004,7 +1004,10 @@ impl Config {
         }
         check_values(
             "scan_match",
-            &[("field_min_hits", self.scan_match.field_min_hits)],
+            &[
+                ("field_min_hits", self.scan_match.field_min_hits),
+                ("endpoint_spacing", self.scan_match.endpoint_spacing),
+            ],
             true,
         )?;
         let ms = self.scan_match.motion_share;

@@ -1276,9 +1276,9 @@ fn pose_bits(p: &Pose2) -> [u64; 4] {
 }
 
 /// The first of `points` (in order) in each `spacing`-wide square of the
-/// plane; all of them where `spacing` is not positive.
+/// plane; all of them where `spacing` is not a positive number.
 fn one_per_square(points: Vec<[f64; 2]>, spacing: f64) -> Vec<[f64; 2]> {
-    if !(spacing > 0.0) {
+    if !spacing.is_finite() || spacing <= 0.0 {
         return points;
     }
     let mut seen = rustc_hash::FxHashSet::default();
