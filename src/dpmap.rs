@@ -9,10 +9,10 @@
 //! numbering that is the containing entry with the largest `enter`.
 //!
 //! Linear time (ch. 5) rests on two indexes:
-//! - every node keeps a hash index `cell → position` of its entries, so that
-//!   deleting a dead node or merging an only-child into its parent costs O(1)
-//!   per entry, never a scan of the cell's list (lists are O(particles) long
-//!   where the particles disagree);
+//! - every node keeps the list of cells where it has an entry, so that
+//!   deleting dead nodes or merging only-children into their parents visits
+//!   only their cells: each such cell's list is rewritten once per prune, in
+//!   one pass, however many of its entries die or merge ([`DpMap::apply`]);
 //! - the **map cache** ([`ViewCache`]): per iteration, the first lookup of a
 //!   long-listed cell resolves the list once for all particles into breakpoints
 //!   over the depth-first order; later lookups by any particle are a binary
@@ -140,8 +140,11 @@ fn next_id() -> u64 {
 pub struct DpMap<const D: usize> {
     cell: f64,
     bricks: FxHashMap<CellKey<D>, Brick>,
-    /// Per node: where its entries are (cell → index in that cell's list).
-    index: Vec<FxHashMap<CellKey<D>, u32>>,
+    /// Per node: the cells where it has an entry (each once, in no set
+    /// order). Positions inside the cells' lists are not kept: a list is
+    /// scanned where one is needed, which is cheaper than keeping a hash
+    /// index per node up to date through every insert, move and merge.
+    index: Vec<Vec<CellKey<D>>>,
     entries: usize,
     version: u64,
     id: u64,
@@ -233,6 +236,19 @@ fn resolve(list: &[Entry], enter: &[u32], exit: &[u32], p: u32) -> Option<Entry>
         }
     }
     best.map(|b| b.1)
+}
+
+/// What one batch of [`Change`]s does to a node's entries ([`DpMap::apply`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Fate {
+    Keep,
+    Drop,
+    /// Merged into `node`; of several merges into one node, the later
+    /// (`rank`, its place in the batch) holds the newer observation.
+    Into {
+        node: NodeId,
+        rank: u32,
+    },
 }
 
 impl<const D: usize> DpMap<D> {
@@ -354,10 +370,10 @@ impl<const D: usize> DpMap<D> {
         brick
     }
 
-    fn node_index(&mut self, n: NodeId) -> &mut FxHashMap<CellKey<D>, u32> {
+    fn node_index(&mut self, n: NodeId) -> &mut Vec<CellKey<D>> {
         let i = n as usize;
         if self.index.len() <= i {
-            self.index.resize_with(i + 1, FxHashMap::default);
+            self.index.resize_with(i + 1, Vec::new);
         }
         &mut self.index[i]
     }
@@ -366,9 +382,25 @@ impl<const D: usize> DpMap<D> {
     /// insert for the same pair overwrites the first).
     pub fn insert(&mut self, node: NodeId, k: CellKey<D>, hits: f32, distance: f32) {
         self.version = next_version();
-        let mut index = std::mem::take(self.node_index(node));
-        self.put(&mut index, node, k, hits, distance);
-        self.index[node as usize] = index;
+        let added = self.edit_cell(k, |list| match list.iter_mut().find(|e| e.node == node) {
+            Some(e) => {
+                e.hits = hits;
+                e.distance = distance;
+                false
+            }
+            None => {
+                list.push(Entry {
+                    node,
+                    hits,
+                    distance,
+                });
+                true
+            }
+        });
+        if added {
+            self.node_index(node).push(k);
+            self.entries += 1;
+        }
     }
 
     /// Adds the observations of a node that has no entries yet (panics
@@ -381,17 +413,15 @@ impl<const D: usize> DpMap<D> {
     /// [`DpMap::insert_fresh`] for several nodes at once, in order (each
     /// node's cells unique and best in [`storage_order`]): a list of
     /// [`FreshNode`]s, or of `(node, &cells)`. The lists are appended one
-    /// brick at a time; the nodes' indexes are built in parallel.
+    /// brick at a time.
     pub fn insert_fresh_nodes<C>(&mut self, fresh: &[(NodeId, C)])
     where
         C: AsRef<[(CellKey<D>, f32, f32)]> + Sync,
     {
         self.version = next_version();
-        let mut positions: Vec<Vec<u32>> = Vec::with_capacity(fresh.len());
         for (node, cells) in fresh {
             let cells = cells.as_ref();
             assert_eq!(self.node_entries(*node), 0, "node {node} is not fresh");
-            let mut at = Vec::with_capacity(cells.len());
             // One brick look-up per run of cells in the same brick.
             let mut rest = cells;
             while let Some(&(first, _, _)) = rest.first() {
@@ -404,7 +434,10 @@ impl<const D: usize> DpMap<D> {
                         break;
                     }
                     let list = &mut brick.cells[i];
-                    at.push(list.len() as u32);
+                    debug_assert!(
+                        list.iter().all(|e| e.node != *node),
+                        "node {node}: cells repeat"
+                    );
                     list.push(Entry {
                         node: *node,
                         hits,
@@ -419,70 +452,30 @@ impl<const D: usize> DpMap<D> {
                 rest = &rest[taken..];
             }
             self.entries += cells.len();
-            positions.push(at);
-        }
-        let indexes: Vec<FxHashMap<CellKey<D>, u32>> = fresh
-            .par_iter()
-            .zip(positions)
-            .map(|((_, cells), at)| cells.as_ref().iter().map(|c| c.0).zip(at).collect())
-            .collect();
-        for ((node, cells), index) in fresh.iter().zip(indexes) {
-            debug_assert_eq!(
-                index.len(),
-                cells.as_ref().len(),
-                "node {node}: cells repeat"
-            );
-            *self.node_index(*node) = index;
+            *self.node_index(*node) = cells.iter().map(|c| c.0).collect();
         }
     }
 
-    /// Writes `node`'s entry of cell `k` (`index` is the node's index, held
-    /// outside the map while it is edited): overwrites an existing entry,
-    /// else appends one.
-    fn put(
-        &mut self,
-        index: &mut FxHashMap<CellKey<D>, u32>,
-        node: NodeId,
-        k: CellKey<D>,
-        hits: f32,
-        distance: f32,
-    ) {
-        let added = self.edit_cell(k, |list| match index.entry(k) {
-            std::collections::hash_map::Entry::Occupied(o) => {
-                let e = &mut list[*o.get() as usize];
-                e.hits = hits;
-                e.distance = distance;
-                false
-            }
-            std::collections::hash_map::Entry::Vacant(v) => {
-                list.push(Entry {
-                    node,
-                    hits,
-                    distance,
-                });
-                v.insert((list.len() - 1) as u32);
-                true
-            }
-        });
-        self.entries += usize::from(added);
+    /// Where `node`'s entry sits in cell `k`'s list, if it has one.
+    fn position_of(&self, node: NodeId, k: CellKey<D>) -> Option<usize> {
+        self.cell(k).iter().position(|e| e.node == node)
     }
 
     /// Adds `distance` (m) to `node`'s existing entry in cell `k` in place,
     /// for free-space evidence shared by all of the node's descendants.
     /// Returns false if the node has no entry there.
     pub fn add_distance(&mut self, node: NodeId, k: CellKey<D>, distance: f32) -> bool {
-        let Some(&pos) = self.index.get(node as usize).and_then(|m| m.get(&k)) else {
+        let Some(pos) = self.position_of(node, k) else {
             return false;
         };
         self.version = next_version();
-        self.cell_mut(k)[pos as usize].distance += distance;
+        self.cell_mut(k)[pos].distance += distance;
         true
     }
 
     /// `node`'s entry in cell `k`, if it has one.
     pub fn entry_of(&self, node: NodeId, k: CellKey<D>) -> Option<Entry> {
-        let &pos = self.index.get(node as usize)?.get(&k)?;
-        self.cell(k).get(pos as usize).copied()
+        self.cell(k).iter().find(|e| e.node == node).copied()
     }
 
     /// Sets the path length (m) of each entry `(cell, position in the
@@ -502,17 +495,17 @@ impl<const D: usize> DpMap<D> {
     /// Sets the path length (m) of `node`'s existing entry in cell `k`.
     /// Returns false if the node has no entry there.
     pub fn set_distance(&mut self, node: NodeId, k: CellKey<D>, distance: f32) -> bool {
-        let Some(&pos) = self.index.get(node as usize).and_then(|m| m.get(&k)) else {
+        let Some(pos) = self.position_of(node, k) else {
             return false;
         };
         self.version = next_version();
-        self.cell_mut(k)[pos as usize].distance = distance;
+        self.cell_mut(k)[pos].distance = distance;
         true
     }
 
     /// Number of cells where `node` has an entry.
     pub fn node_entries(&self, node: NodeId) -> usize {
-        self.index.get(node as usize).map_or(0, |m| m.len())
+        self.index.get(node as usize).map_or(0, Vec::len)
     }
 
     /// A read-only view of the map as seen by the particle holding `leaf`.
@@ -529,134 +522,148 @@ impl<const D: usize> DpMap<D> {
         }
     }
 
-    /// Mirrors the ancestry tree's edits, in order.
+    /// Mirrors the ancestry tree's edits, as if applied one by one in
+    /// order: a removed node's entries go; a child merged into its parent
+    /// hands its entries to the parent, replacing the parent's own where
+    /// both have one.
+    ///
+    /// The edits are applied in batches, each as large as it can be while
+    /// one pass per cell still gives the sequential result (a batch ends
+    /// before an edit that removes or merges a node an earlier edit of the
+    /// batch merged into). A prune's edits (all removals, then merges into
+    /// nodes that stay) are one batch: each cell any of them touches is
+    /// rewritten once, in storage order.
     pub fn apply(&mut self, changes: &[Change]) {
         self.version = next_version();
-        let mut i = 0;
-        while i < changes.len() {
-            match changes[i] {
-                Change::Removed(_) => {
-                    // A run of removals is one batch: each touched cell is
-                    // compacted once instead of once per dead entry.
-                    let mut dead = Vec::new();
-                    while let Some(&Change::Removed(n)) = changes.get(i) {
-                        dead.push(n);
-                        i += 1;
+        let top = changes
+            .iter()
+            .map(|c| match *c {
+                Change::Removed(n) => n,
+                Change::Merged { child, into } => child.max(into),
+            })
+            .max()
+            .map_or(0, |n| n as usize + 1)
+            .max(self.index.len());
+        let mut fate = vec![Fate::Keep; top];
+        let mut targeted = vec![false; top];
+        let mut batch: Vec<NodeId> = Vec::new();
+        for (rank, c) in changes.iter().enumerate() {
+            let (node, f) = match *c {
+                Change::Removed(n) => (n, Fate::Drop),
+                Change::Merged { child, into } => (
+                    child,
+                    Fate::Into {
+                        node: into,
+                        rank: rank as u32,
+                    },
+                ),
+            };
+            let target_moves =
+                matches!(f, Fate::Into { node: t, .. } if fate[t as usize] != Fate::Keep);
+            if target_moves || targeted[node as usize] {
+                self.rewrite(&batch, &fate);
+                for b in batch.drain(..) {
+                    if let Fate::Into { node: t, .. } = fate[b as usize] {
+                        targeted[t as usize] = false;
                     }
-                    self.remove_nodes(&dead);
-                }
-                Change::Merged { child, into } => {
-                    self.merge_node(child, into);
-                    i += 1;
+                    fate[b as usize] = Fate::Keep;
                 }
             }
+            if let Fate::Into { node: t, .. } = f {
+                targeted[t as usize] = true;
+            }
+            fate[node as usize] = f;
+            batch.push(node);
         }
+        self.rewrite(&batch, &fate);
     }
 
-    /// Removes every entry of the `dead` nodes. Cells are visited once each,
-    /// in storage order; a cell whose list lost at least a quarter of its
-    /// entries is compacted in one pass, others lose their dead entries one
-    /// swap at a time (so that a long list with one dead entry costs O(1)).
-    fn remove_nodes(&mut self, dead: &[NodeId]) {
-        let mut is_dead = vec![false; self.index.len()];
-        let mut cells: Vec<(CellKey<D>, u32)> = Vec::new();
-        for &n in dead {
+    /// Rewrites every cell where a node of `batch` has an entry, by `fate`
+    /// (every target of a merge is kept): dropped entries go; of the
+    /// entries merged into one node, the latest takes that node's own
+    /// entry's values, or becomes its entry where it has none.
+    fn rewrite(&mut self, batch: &[NodeId], fate: &[Fate]) {
+        let mut cells: Vec<CellKey<D>> = Vec::new();
+        for &n in batch {
             if let Some(m) = self.index.get_mut(n as usize) {
-                is_dead[n as usize] = true;
-                cells.extend(std::mem::take(m));
+                cells.append(m);
             }
         }
-        cells.par_sort_unstable_by_key(|&(k, pos)| (split(k), pos));
-        let mut moved: Vec<(NodeId, CellKey<D>, u32)> = Vec::new();
-        let mut start = 0;
-        while start < cells.len() {
-            let k = cells[start].0;
-            let end = start + cells[start..].iter().take_while(|c| c.0 == k).count();
-            let removed = end - start;
-            // One brick look-up per cell: the closure itself decides
-            // between compaction and the swaps below.
-            let compacted = self.edit_cell(k, |list| {
-                if removed * 4 < list.len() {
-                    return false;
+        cells.par_sort_unstable_by_key(|&k| split(k));
+        cells.dedup();
+        // Per target node met in the cell at hand: (its own entry's
+        // position, the latest merged entry's rank and position).
+        let mut targets: Vec<(NodeId, Option<usize>, u32, usize)> = Vec::new();
+        let mut relabelled: Vec<(NodeId, CellKey<D>)> = Vec::new();
+        let mut removed = 0;
+        let mut rest = &cells[..];
+        while let Some(&first) = rest.first() {
+            let b = split(first).0;
+            let brick = self.brick_mut(b);
+            let mut taken = 0;
+            for &k in rest {
+                let (kb, i) = split(k);
+                if kb != b {
+                    break;
                 }
+                taken += 1;
+                let list = &mut brick.cells[i];
+                targets.clear();
+                for (r, e) in list.iter().enumerate() {
+                    if let Fate::Into { node, rank } = fate[e.node as usize] {
+                        match targets.iter_mut().find(|t| t.0 == node) {
+                            Some(t) if t.2 < rank => (t.2, t.3) = (rank, r),
+                            Some(_) => {}
+                            None => targets.push((node, None, rank, r)),
+                        }
+                    }
+                }
+                if !targets.is_empty() {
+                    for (r, e) in list.iter().enumerate() {
+                        if let Some(t) = targets.iter_mut().find(|t| t.0 == e.node) {
+                            t.1 = Some(r);
+                        }
+                    }
+                    for &(node, own, _, latest) in &targets {
+                        match own {
+                            Some(o) => {
+                                let (hits, distance) = (list[latest].hits, list[latest].distance);
+                                list[o].hits = hits;
+                                list[o].distance = distance;
+                            }
+                            None => {
+                                list[latest].node = node;
+                                relabelled.push((node, k));
+                            }
+                        }
+                    }
+                }
+                let before = list.len();
                 let mut w = 0;
-                for r in 0..list.len() {
+                for r in 0..before {
                     let e = list[r];
-                    if is_dead.get(e.node as usize).copied().unwrap_or(false) {
-                        continue;
-                    }
-                    if w != r {
+                    if fate[e.node as usize] == Fate::Keep {
                         list[w] = e;
-                        moved.push((e.node, k, w as u32));
+                        w += 1;
                     }
-                    w += 1;
                 }
                 list.truncate(w);
                 list.give_back_spare();
-                true
-            });
-            if compacted {
-                self.entries -= removed;
-            } else {
-                // Highest position first: the entry a swap moves comes from
-                // above every dead entry still to be removed, so it is live
-                // and `swap_out` may re-index it at once.
-                for c in (start..end).rev() {
-                    self.swap_out(k, cells[c].1);
-                }
+                removed += before - w;
+                brick.refresh(i);
             }
-            start = end;
+            rest = &rest[taken..];
         }
-        // Compaction moved only live entries.
-        for (n, k, pos) in moved {
-            self.index[n as usize].insert(k, pos);
+        self.entries -= removed;
+        for (node, k) in relabelled {
+            self.node_index(node).push(k);
         }
-    }
-
-    /// Removes the entry at `pos` of cell `k` by swapping the last one in.
-    fn swap_out(&mut self, k: CellKey<D>, pos: u32) {
-        let moved = self.edit_cell(k, |list| {
-            list.swap_remove(pos as usize);
-            list.give_back_spare();
-            list.get(pos as usize).map(|e| e.node)
-        });
-        self.entries -= 1;
-        if let Some(m) = moved {
-            self.index[m as usize].insert(k, pos);
-        }
-    }
-
-    /// Takes node `n`'s index out of the map, in storage order (by brick,
-    /// then Morton index) so that the edits that follow walk memory in order.
-    fn take_index(&mut self, n: NodeId) -> Vec<(CellKey<D>, u32)> {
-        let Some(m) = self.index.get_mut(n as usize) else {
-            return Vec::new();
-        };
-        let mut cells: Vec<(CellKey<D>, u32)> = std::mem::take(m).into_iter().collect();
-        cells.sort_unstable_by_key(|&(k, _)| split(k));
-        cells
-    }
-
-    fn merge_node(&mut self, child: NodeId, into: NodeId) {
-        for (k, pc) in self.take_index(child) {
-            match self.node_index(into).get(&k).copied() {
-                Some(px) => {
-                    // The parent's entry takes the child's (newer) values.
-                    self.edit_cell(k, |list| {
-                        let (h, d) = (list[pc as usize].hits, list[pc as usize].distance);
-                        list[px as usize].hits = h;
-                        list[px as usize].distance = d;
-                    });
-                    self.swap_out(k, pc);
-                }
-                None => {
-                    self.edit_cell(k, |list| list[pc as usize].node = into);
-                    self.node_index(into).insert(k, pc);
-                }
+        for &n in batch {
+            if let Some(m) = self.index.get_mut(n as usize) {
+                *m = Vec::new();
             }
         }
     }
-
     /// Calls `f` for every allocated cell with its key and list.
     pub fn for_each_cell(&self, mut f: impl FnMut(CellKey<D>, &[Entry])) {
         for (b, brick) in &self.bricks {
@@ -1273,6 +1280,72 @@ mod tests {
         batch.set_distances_at([([40, 2], pos, 9.0)]);
         assert_eq!(batch.entry_of(b, [40, 2]).unwrap().distance, 9.0);
         assert_eq!(batch.entry_of(a, [40, 1]).unwrap().distance, 4.0);
+    }
+
+    /// One `apply` of a whole list of edits leaves every cell as the edits
+    /// applied one at a time do, whatever the order of removals and merges
+    /// (chains of merges into one node, merges into a node that is merged
+    /// or removed later: the cases that split a batch).
+    #[test]
+    fn one_apply_equals_edits_one_at_a_time() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
+        let cells: Vec<CellKey<2>> = vec![[0, 0], [1, 0], [0, 17], [-3, -40], [5, 5]];
+        let mut split_batches = 0;
+        for round in 0..300 {
+            let nodes = 9;
+            let mut batch = DpMap::<2>::new(0.1);
+            for n in 0..nodes {
+                for &k in &cells {
+                    if n == ROOT || rng.random_range(0..3) > 0 {
+                        batch.insert(n, k, rng.random_range(0..3) as f32, n as f32 + 0.5);
+                    }
+                }
+            }
+            let mut one = batch.clone();
+            let mut alive: Vec<NodeId> = (1..nodes).collect();
+            let mut targets: Vec<NodeId> = Vec::new();
+            let mut changes = Vec::new();
+            for _ in 0..rng.random_range(1..nodes) {
+                let x = alive.swap_remove(rng.random_range(0..alive.len()));
+                let into: Vec<NodeId> =
+                    std::iter::once(ROOT).chain(alive.iter().copied()).collect();
+                if targets.contains(&x) {
+                    split_batches += 1;
+                }
+                if rng.random_range(0..3) == 0 {
+                    changes.push(Change::Removed(x));
+                } else {
+                    let t = into[rng.random_range(0..into.len())];
+                    targets.push(t);
+                    changes.push(Change::Merged { child: x, into: t });
+                }
+            }
+            batch.apply(&changes);
+            for c in &changes {
+                one.apply(std::slice::from_ref(c));
+            }
+            let sorted = |m: &DpMap<2>, k| {
+                let mut l = m.cell(k).to_vec();
+                l.sort_by_key(|e| e.node);
+                l
+            };
+            for &k in &cells {
+                assert_eq!(
+                    sorted(&batch, k),
+                    sorted(&one, k),
+                    "round {round} {changes:?}"
+                );
+                for n in 0..nodes {
+                    assert_eq!(batch.entry_of(n, k), one.entry_of(n, k));
+                }
+            }
+            assert_eq!(batch.entry_count(), one.entry_count());
+            for n in 0..nodes {
+                assert_eq!(batch.node_entries(n), one.node_entries(n), "round {round}");
+            }
+        }
+        assert!(split_batches > 50, "{split_batches} rounds split a batch");
     }
 
     #[test]
