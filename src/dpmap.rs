@@ -412,48 +412,87 @@ impl<const D: usize> DpMap<D> {
 
     /// [`DpMap::insert_fresh`] for several nodes at once, in order (each
     /// node's cells unique and best in [`storage_order`]): a list of
-    /// [`FreshNode`]s, or of `(node, &cells)`. The lists are appended one
-    /// brick at a time.
+    /// [`FreshNode`]s, or of `(node, &cells)`. The bricks are filled in
+    /// parallel, each with its cells' entries in node order.
     pub fn insert_fresh_nodes<C>(&mut self, fresh: &[(NodeId, C)])
     where
         C: AsRef<[(CellKey<D>, f32, f32)]> + Sync,
     {
         self.version = next_version();
+        type Run<'c, const D: usize> = (NodeId, &'c [(CellKey<D>, f32, f32)]);
+        let mut work: Vec<(CellKey<D>, Vec<Run<'_, D>>)> = Vec::new();
+        let mut slot: FxHashMap<CellKey<D>, usize> = FxHashMap::default();
         for (node, cells) in fresh {
-            let cells = cells.as_ref();
             assert_eq!(self.node_entries(*node), 0, "node {node} is not fresh");
-            // One brick look-up per run of cells in the same brick.
-            let mut rest = cells;
-            while let Some(&(first, _, _)) = rest.first() {
-                let b = split(first).0;
-                let brick = self.brick_mut(b);
-                let mut taken = 0;
-                for &(k, hits, distance) in rest {
-                    let (kb, i) = split(k);
-                    if kb != b {
-                        break;
-                    }
+            for run in cells.as_ref().chunk_by(|x, y| split(x.0).0 == split(y.0).0) {
+                let b = split(run[0].0).0;
+                let s = *slot.entry(b).or_insert_with(|| {
+                    work.push((b, Vec::new()));
+                    work.len() - 1
+                });
+                work[s].1.push((*node, run));
+            }
+        }
+        self.edit_bricks(work, |brick, runs| {
+            for (node, run) in runs {
+                for &(k, hits, distance) in run {
+                    let i = split(k).1;
                     let list = &mut brick.cells[i];
                     debug_assert!(
-                        list.iter().all(|e| e.node != *node),
+                        list.iter().all(|e| e.node != node),
                         "node {node}: cells repeat"
                     );
                     list.push(Entry {
-                        node: *node,
+                        node,
                         hits,
                         distance,
                     });
                     // Another node's entry with no hits leaves the bit as it was.
-                    if hits > 0.0 || *node == ROOT {
+                    if hits > 0.0 || node == ROOT {
                         brick.refresh(i);
                     }
-                    taken += 1;
                 }
-                rest = &rest[taken..];
             }
+        });
+        for (node, cells) in fresh {
+            let cells = cells.as_ref();
             self.entries += cells.len();
             *self.node_index(*node) = cells.iter().map(|c| c.0).collect();
         }
+    }
+
+    /// Takes each brick of `work` out of the map (a new one where there is
+    /// none), lets `edit` change it with its work item, one parallel task
+    /// per brick, and puts it back stamped with the current version; returns
+    /// the tasks' results in `work`'s order. Bricks share no list, so the
+    /// result does not depend on the thread count.
+    fn edit_bricks<W: Send, R: Send>(
+        &mut self,
+        work: Vec<(CellKey<D>, W)>,
+        edit: impl Fn(&mut Brick, W) -> R + Sync,
+    ) -> Vec<R> {
+        let n = Self::brick_cells();
+        let taken: Vec<(CellKey<D>, Brick, W)> = work
+            .into_iter()
+            .map(|(b, w)| {
+                let brick = self.bricks.remove(&b).unwrap_or_else(|| Brick::new(n));
+                (b, brick, w)
+            })
+            .collect();
+        let done: Vec<(CellKey<D>, Brick, R)> = taken
+            .into_par_iter()
+            .map(|(b, mut brick, w)| {
+                let r = edit(&mut brick, w);
+                (b, brick, r)
+            })
+            .collect();
+        done.into_iter()
+            .map(|(b, mut brick, r)| {
+                brick.stamp = self.version;
+                self.bricks.insert(b, brick);
+                r
+            })
+            .collect()
     }
 
     /// Where `node`'s entry sits in cell `k`'s list, if it has one.
@@ -583,30 +622,49 @@ impl<const D: usize> DpMap<D> {
     /// entries merged into one node, the latest takes that node's own
     /// entry's values, or becomes its entry where it has none.
     fn rewrite(&mut self, batch: &[NodeId], fate: &[Fate]) {
-        let mut cells: Vec<CellKey<D>> = Vec::new();
+        // The touched cells, brick by brick, as bit masks over the brick's
+        // cells: one hash look-up per run of a node's cells in one brick
+        // (a node's cells come in storage order), no sort of the cells.
+        let mut slot: FxHashMap<CellKey<D>, usize> = FxHashMap::default();
+        let mut work: Vec<(CellKey<D>, (CellKey<D>, [u64; 8]))> = Vec::new();
         for &n in batch {
-            if let Some(m) = self.index.get_mut(n as usize) {
-                cells.append(m);
+            let Some(m) = self.index.get_mut(n as usize) else {
+                continue;
+            };
+            for run in std::mem::take(m).chunk_by(|x, y| split(*x).0 == split(*y).0) {
+                let b = split(run[0]).0;
+                let s = *slot.entry(b).or_insert_with(|| {
+                    work.push((b, (b, [0; 8])));
+                    work.len() - 1
+                });
+                let mask = &mut work[s].1.1;
+                for &k in run {
+                    let i = split(k).1;
+                    mask[i >> 6] |= 1 << (i & 63);
+                }
             }
         }
-        cells.par_sort_unstable_by_key(|&k| split(k));
-        cells.dedup();
-        // Per target node met in the cell at hand: (its own entry's
-        // position, the latest merged entry's rank and position).
-        let mut targets: Vec<(NodeId, Option<usize>, u32, usize)> = Vec::new();
-        let mut relabelled: Vec<(NodeId, CellKey<D>)> = Vec::new();
-        let mut removed = 0;
-        let mut rest = &cells[..];
-        while let Some(&first) = rest.first() {
-            let b = split(first).0;
-            let brick = self.brick_mut(b);
-            let mut taken = 0;
-            for &k in rest {
-                let (kb, i) = split(k);
-                if kb != b {
-                    break;
-                }
-                taken += 1;
+        // Bricks in key order: the relabelled cells reach their nodes'
+        // lists in storage order.
+        work.sort_unstable_by_key(|w| w.0);
+        let done = self.edit_bricks(work, |brick, (b, mask)| {
+            // Per target node met in the cell at hand: (its own entry's
+            // position, the latest merged entry's rank and position).
+            let mut targets: Vec<(NodeId, Option<usize>, u32, usize)> = Vec::new();
+            let mut relabelled: Vec<(NodeId, CellKey<D>)> = Vec::new();
+            let mut removed = 0;
+            let cells = mask.iter().enumerate().flat_map(|(w, &bits)| {
+                let mut bits = bits;
+                std::iter::from_fn(move || {
+                    (bits != 0).then(|| {
+                        let i = bits.trailing_zeros() as usize;
+                        bits &= bits - 1;
+                        64 * w + i
+                    })
+                })
+            });
+            for i in cells {
+                let k = join(b, i);
                 let list = &mut brick.cells[i];
                 targets.clear();
                 for (r, e) in list.iter().enumerate() {
@@ -652,11 +710,13 @@ impl<const D: usize> DpMap<D> {
                 removed += before - w;
                 brick.refresh(i);
             }
-            rest = &rest[taken..];
-        }
-        self.entries -= removed;
-        for (node, k) in relabelled {
-            self.node_index(node).push(k);
+            (removed, relabelled)
+        });
+        for (removed, relabelled) in done {
+            self.entries -= removed;
+            for (node, k) in relabelled {
+                self.node_index(node).push(k);
+            }
         }
         for &n in batch {
             if let Some(m) = self.index.get_mut(n as usize) {
@@ -664,6 +724,7 @@ impl<const D: usize> DpMap<D> {
             }
         }
     }
+
     /// Calls `f` for every allocated cell with its key and list.
     pub fn for_each_cell(&self, mut f: impl FnMut(CellKey<D>, &[Entry])) {
         for (b, brick) in &self.bricks {
