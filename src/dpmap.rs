@@ -251,6 +251,35 @@ enum Fate {
     },
 }
 
+/// The indices of the set bits of `words` (bit `i` of word `w` is index
+/// `64 w + i`), in increasing order.
+fn set_bits(words: &[u64]) -> impl Iterator<Item = usize> + '_ {
+    words.iter().enumerate().flat_map(|(w, &word)| {
+        let mut bits = word;
+        std::iter::from_fn(move || {
+            (bits != 0).then(|| {
+                let i = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                64 * w + i
+            })
+        })
+    })
+}
+
+/// The work item of brick `b` in `work` (a default one, appended, on the
+/// brick's first use); `slot` maps bricks to their places in `work`.
+fn brick_work<'w, const D: usize, T: Default>(
+    work: &'w mut Vec<(CellKey<D>, T)>,
+    slot: &mut FxHashMap<CellKey<D>, usize>,
+    b: CellKey<D>,
+) -> &'w mut T {
+    let s = *slot.entry(b).or_insert_with(|| {
+        work.push((b, T::default()));
+        work.len() - 1
+    });
+    &mut work[s].1
+}
+
 impl<const D: usize> DpMap<D> {
     /// An empty map with cells of `cell` metres.
     pub fn new(cell: f64) -> Self {
@@ -425,15 +454,10 @@ impl<const D: usize> DpMap<D> {
         for (node, cells) in fresh {
             assert_eq!(self.node_entries(*node), 0, "node {node} is not fresh");
             for run in cells.as_ref().chunk_by(|x, y| split(x.0).0 == split(y.0).0) {
-                let b = split(run[0].0).0;
-                let s = *slot.entry(b).or_insert_with(|| {
-                    work.push((b, Vec::new()));
-                    work.len() - 1
-                });
-                work[s].1.push((*node, run));
+                brick_work(&mut work, &mut slot, split(run[0].0).0).push((*node, run));
             }
         }
-        self.edit_bricks(work, |brick, runs| {
+        self.edit_bricks(work, |_, brick, runs| {
             for (node, run) in runs {
                 for &(k, hits, distance) in run {
                     let i = split(k).1;
@@ -462,14 +486,14 @@ impl<const D: usize> DpMap<D> {
     }
 
     /// Takes each brick of `work` out of the map (a new one where there is
-    /// none), lets `edit` change it with its work item, one parallel task
-    /// per brick, and puts it back stamped with the current version; returns
+    /// none), lets `edit` change it (given its key and work item), one
+    /// parallel task per brick, and puts it back stamped with the current version; returns
     /// the tasks' results in `work`'s order. Bricks share no list, so the
     /// result does not depend on the thread count.
     fn edit_bricks<W: Send, R: Send>(
         &mut self,
         work: Vec<(CellKey<D>, W)>,
-        edit: impl Fn(&mut Brick, W) -> R + Sync,
+        edit: impl Fn(CellKey<D>, &mut Brick, W) -> R + Sync,
     ) -> Vec<R> {
         let n = Self::brick_cells();
         let taken: Vec<(CellKey<D>, Brick, W)> = work
@@ -482,7 +506,7 @@ impl<const D: usize> DpMap<D> {
         let done: Vec<(CellKey<D>, Brick, R)> = taken
             .into_par_iter()
             .map(|(b, mut brick, w)| {
-                let r = edit(&mut brick, w);
+                let r = edit(b, &mut brick, w);
                 (b, brick, r)
             })
             .collect();
@@ -626,18 +650,13 @@ impl<const D: usize> DpMap<D> {
         // cells: one hash look-up per run of a node's cells in one brick
         // (a node's cells come in storage order), no sort of the cells.
         let mut slot: FxHashMap<CellKey<D>, usize> = FxHashMap::default();
-        let mut work: Vec<(CellKey<D>, (CellKey<D>, [u64; 8]))> = Vec::new();
+        let mut work: Vec<(CellKey<D>, [u64; 8])> = Vec::new();
         for &n in batch {
             let Some(m) = self.index.get_mut(n as usize) else {
                 continue;
             };
             for run in std::mem::take(m).chunk_by(|x, y| split(*x).0 == split(*y).0) {
-                let b = split(run[0]).0;
-                let s = *slot.entry(b).or_insert_with(|| {
-                    work.push((b, (b, [0; 8])));
-                    work.len() - 1
-                });
-                let mask = &mut work[s].1.1;
+                let mask = brick_work(&mut work, &mut slot, split(run[0]).0);
                 for &k in run {
                     let i = split(k).1;
                     mask[i >> 6] |= 1 << (i & 63);
@@ -647,23 +666,13 @@ impl<const D: usize> DpMap<D> {
         // Bricks in key order: the relabelled cells reach their nodes'
         // lists in storage order.
         work.sort_unstable_by_key(|w| w.0);
-        let done = self.edit_bricks(work, |brick, (b, mask)| {
+        let done = self.edit_bricks(work, |b, brick, mask| {
             // Per target node met in the cell at hand: (its own entry's
             // position, the latest merged entry's rank and position).
             let mut targets: Vec<(NodeId, Option<usize>, u32, usize)> = Vec::new();
             let mut relabelled: Vec<(NodeId, CellKey<D>)> = Vec::new();
             let mut removed = 0;
-            let cells = mask.iter().enumerate().flat_map(|(w, &bits)| {
-                let mut bits = bits;
-                std::iter::from_fn(move || {
-                    (bits != 0).then(|| {
-                        let i = bits.trailing_zeros() as usize;
-                        bits &= bits - 1;
-                        64 * w + i
-                    })
-                })
-            });
-            for i in cells {
+            for i in set_bits(&mask) {
                 let k = join(b, i);
                 let list = &mut brick.cells[i];
                 targets.clear();
@@ -718,11 +727,6 @@ impl<const D: usize> DpMap<D> {
                 self.node_index(node).push(k);
             }
         }
-        for &n in batch {
-            if let Some(m) = self.index.get_mut(n as usize) {
-                *m = Vec::new();
-            }
-        }
     }
 
     /// Calls `f` for every allocated cell with its key and list.
@@ -752,13 +756,8 @@ impl<const D: usize> DpMap<D> {
         let Some(brick) = self.bricks.get(&b) else {
             return;
         };
-        for (w, &word) in brick.hit.iter().enumerate() {
-            let mut bits = word;
-            while bits != 0 {
-                let i = w * 64 + bits.trailing_zeros() as usize;
-                bits &= bits - 1;
-                f(join(b, i), &brick.cells[i]);
-            }
+        for i in set_bits(&brick.hit) {
+            f(join(b, i), &brick.cells[i]);
         }
     }
 
