@@ -102,7 +102,7 @@ fn downsample(source: &[Vec3A], size: f64) -> Vec<Vector3<f64>> {
 }
 
 /// Keeps at most `max` points with an even stride (deterministic).
-fn thin<T: Copy>(v: &[T], max: usize) -> Vec<T> {
+pub(crate) fn thin<T: Copy>(v: &[T], max: usize) -> Vec<T> {
     let stride = v.len().div_ceil(max.max(1)).max(1);
     v.iter().step_by(stride).copied().collect()
 }

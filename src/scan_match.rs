@@ -119,8 +119,7 @@ impl ScanMatcher2d {
         let returns = scan.returns_in_robot_frame();
         let beams = returns.len();
         let returns = one_per_square(returns, self.cfg.endpoint_spacing);
-        let stride = returns.len().div_ceil(self.cfg.max_beams.max(1)).max(1);
-        (returns.into_iter().step_by(stride).collect(), beams)
+        (crate::icp::thin(&returns, self.cfg.max_beams), beams)
     }
 
     /// Registers `points` (of a scan of `beams` returns) against `field`
