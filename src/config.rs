@@ -594,6 +594,28 @@ pub struct FilterConfig {
     /// fails, or with this off, a skipped scan is placed by its odometry
     /// from the processed scans on both sides, blended by time.
     pub match_skipped: bool,
+    /// With `match_skipped`: a scan past `min_translation` /
+    /// `min_rotation` is still skipped while the best particle's match of
+    /// it confirms the odometry (agrees within `confirm_xy` and
+    /// `confirm_theta`), until the robot moved this far (m, by odometry or
+    /// by the match) since the last processed scan. Where odometry is
+    /// good, the filter then steps about every `confirmed_translation`;
+    /// where it slips, the match disagrees and every scan past the small
+    /// gate is processed. 0 (the default) turns it off. Opt-in: 0.5 m /
+    /// 0.25 rad halves mit-csail's time at the same accuracy, but lost
+    /// fr079-raw on every seed and gate tried (docs/PROPOSAL-2D.md,
+    /// session 37).
+    pub confirmed_translation: f64,
+    /// ... or turned this far (rad).
+    pub confirmed_rotation: f64,
+    /// The largest gap (m) between odometry and the match of a skipped
+    /// scan, both relative to the last processed scan, that still counts
+    /// as agreement. Well inside the matcher's search window
+    /// (`scan_match.window_xy`): the odometry guess a step starts from then
+    /// stays within reach of every particle's match.
+    pub confirm_xy: f64,
+    /// The same for heading (rad), against `scan_match.window_theta`.
+    pub confirm_theta: f64,
     /// Resampling scheme.
     pub resampling: Resampling,
     /// Selective resampling (Grisetti et al., IEEE T-RO 2007, 0.5 there):
@@ -826,6 +848,10 @@ impl Default for FilterConfig {
             min_translation: 0.05,
             min_rotation: 0.03,
             match_skipped: true,
+            confirmed_translation: 0.0,
+            confirmed_rotation: 0.0,
+            confirm_xy: 0.1,
+            confirm_theta: 0.05,
             resampling: Resampling::Multinomial,
             resample_below: 1.0,
             proposal: ProposalKind::default(),
@@ -952,6 +978,16 @@ impl Config {
         if f.passes == 0 {
             return bad("filter.passes must be at least 1");
         }
+        check_values(
+            "filter",
+            &[
+                ("confirmed_translation", f.confirmed_translation),
+                ("confirmed_rotation", f.confirmed_rotation),
+                ("confirm_xy", f.confirm_xy),
+                ("confirm_theta", f.confirm_theta),
+            ],
+            true,
+        )?;
         if f.resample_below.is_nan() || f.resample_below < 0.0 {
             return bad("filter.resample_below must be ≥ 0 (≥ 1: every step)");
         }
@@ -1219,6 +1255,28 @@ mod tests {
             let mut c = Config::default();
             c.scan_match.motion_share = ok;
             assert!(c.validate().is_ok(), "{ok}");
+        }
+    }
+
+    #[test]
+    fn bad_confirmed_gate_settings_are_config_errors() {
+        type Set = fn(&mut FilterConfig, f64);
+        let keys: [(&str, Set); 4] = [
+            ("confirmed_translation", |f, v| f.confirmed_translation = v),
+            ("confirmed_rotation", |f, v| f.confirmed_rotation = v),
+            ("confirm_xy", |f, v| f.confirm_xy = v),
+            ("confirm_theta", |f, v| f.confirm_theta = v),
+        ];
+        for (key, set) in keys {
+            for bad in [f64::NAN, -0.1, f64::INFINITY] {
+                let mut c = Config::default();
+                set(&mut c.filter, bad);
+                let e = c.validate().unwrap_err().to_string();
+                assert!(e.contains(key), "{key} = {bad}: {e}");
+            }
+            let mut c = Config::default();
+            set(&mut c.filter, 0.3);
+            assert!(c.validate().is_ok(), "{key}");
         }
     }
 

@@ -442,3 +442,46 @@ fn skipped_scans_are_placed_by_their_match_not_by_bad_odometry() {
         assert_eq!(on[i], off[i], "row {i}");
     }
 }
+
+#[test]
+fn scans_whose_match_confirms_odometry_are_skipped_and_a_slip_is_processed_scan_by_scan() {
+    use dpslam::geometry::pose2;
+    // The simulator moves 0.2 m per scan. Past the small gate (0.05 m) a
+    // scan is still skipped while the best particle's match confirms the
+    // odometry, up to the confirmed gate (0.5 m here; off by default):
+    // about every third scan
+    // is processed. From scan 40 to 59 the odometry reports 0.15 m more
+    // per scan than the robot drove, as a slipping wheel does: there
+    // every scan past the small gate is processed.
+    let run = |slip: bool| {
+        let mut cfg = small_config();
+        cfg.filter.confirmed_translation = 0.5;
+        cfg.filter.confirmed_rotation = 0.25;
+        let mut slam = dpslam::slam::Slam2d::new(cfg).unwrap();
+        let mut processed = Vec::new();
+        for (i, scan) in dpslam::io::log2d::open_log2d(Path::new(SIM_LOG))
+            .unwrap()
+            .take(80)
+            .enumerate()
+        {
+            let scan = scan.unwrap();
+            let extra = if slip { i.clamp(40, 60) - 40 } else { 0 };
+            let odometry = scan.odometry * pose2(0.15 * extra as f64, 0.0, 0.0);
+            let e = slam
+                .add_scan(scan.timestamp.unwrap(), odometry, &scan.as_ranges())
+                .unwrap();
+            if e.processed {
+                processed.push(i);
+            }
+        }
+        processed
+    };
+    let in_slip = |p: &[usize]| p.iter().filter(|&&i| (41..60).contains(&i)).count();
+    let (good, slipping) = (run(false), run(true));
+    assert!(good.len() < 35, "{} of 80 processed", good.len());
+    assert!(in_slip(&good) <= 8, "{good:?}");
+    assert!(in_slip(&slipping) >= 17, "{slipping:?}");
+    // Before the slip the two runs are the same.
+    let before = |p: &[usize]| p.iter().copied().filter(|&i| i < 40).collect::<Vec<_>>();
+    assert_eq!(before(&good), before(&slipping));
+}

@@ -94,6 +94,25 @@ pub fn moved_enough(f: &FilterConfig, delta: &Pose2) -> bool {
         || delta.rotation.angle().abs() >= f.min_rotation
 }
 
+/// Whether the robot went far enough since the last processed scan that
+/// the filter processes this one even where its match confirms odometry:
+/// `delta` (previous robot frame) of at least `confirmed_translation` m or
+/// `confirmed_rotation` rad. Always true with either at 0 (the gate off).
+pub fn beyond_confirmed(f: &FilterConfig, delta: &Pose2) -> bool {
+    f.confirmed_translation <= 0.0
+        || f.confirmed_rotation <= 0.0
+        || delta.translation.vector.norm() >= f.confirmed_translation
+        || delta.rotation.angle().abs() >= f.confirmed_rotation
+}
+
+/// Whether a skipped scan's match `matched` confirms the odometry motion
+/// `delta` (both from the last processed scan, in its robot frame): they
+/// differ by less than `confirm_xy` m and `confirm_theta` rad.
+pub fn confirms(f: &FilterConfig, delta: &Pose2, matched: &Pose2) -> bool {
+    let gap = delta.inverse() * matched;
+    gap.translation.vector.norm() < f.confirm_xy && gap.rotation.angle().abs() < f.confirm_theta
+}
+
 /// The 2-D filter of a run with `cfg`: particles at the origin with `first`
 /// (input index `index`) in the map, the C/D/T motion model.
 pub fn new_filter(
@@ -244,7 +263,9 @@ impl Levels {
 /// least `filter.min_translation` or turned `filter.min_rotation` since the
 /// last processed one (the first is always processed) and places the
 /// others by a scan match against the best particle's map
-/// (`filter.match_skipped`) or by odometry. The map frame is the robot
+/// (`filter.match_skipped`) or by odometry. With the opt-in confirmed gate
+/// (`filter.confirmed_translation`), a scan past that gate is skipped too
+/// while its match confirms the odometry. The map frame is the robot
 /// frame at the first scan.
 pub struct Slam2d {
     cfg: Config,
@@ -355,6 +376,7 @@ impl Slam2d {
                 let moved = moved_enough(&self.cfg.filter, &delta);
                 let matching = self.cfg.filter.match_skipped
                     && self.cfg.filter.proposal == ProposalKind::ScanMatched;
+                let mut step = moved;
                 if moved || matching {
                     let scan = to_scan(
                         &reading,
@@ -363,7 +385,17 @@ impl Slam2d {
                         self.max_range,
                         self.cfg.laser.no_return,
                     );
-                    if moved {
+                    let f = &self.cfg.filter;
+                    // Past the small gate, a scan whose match confirms the
+                    // odometry is still skipped, up to the confirmed gate.
+                    let confirmed = match matching && moved && !beyond_confirmed(f, &delta) {
+                        true => levels
+                            .match_best(&delta, &scan)
+                            .filter(|m| confirms(f, &delta, m) && !beyond_confirmed(f, m)),
+                        false => None,
+                    };
+                    step = moved && confirmed.is_none();
+                    if step {
                         let input = StepInput {
                             odometry: delta,
                             proposal: proposal_of(&self.cfg),
@@ -371,11 +403,13 @@ impl Slam2d {
                             index: index as u32,
                         };
                         self.stats.push(levels.step(&input));
-                    } else if let Some(matched) = levels.match_best(&delta, &scan) {
+                    } else if let Some(matched) =
+                        confirmed.or_else(|| levels.match_best(&delta, &scan))
+                    {
                         self.matched_skips.push((index, matched));
                     }
                 }
-                moved
+                step
             }
             (Some(_), None) => unreachable!("a filter exists only after the first scan"),
         };
