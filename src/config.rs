@@ -601,7 +601,8 @@ pub struct FilterConfig {
     /// by the match) since the last processed scan. Where odometry is
     /// good, the filter then steps about every `confirmed_translation`;
     /// where it slips, the match disagrees and every scan past the small
-    /// gate is processed. 0 (the default) turns it off. Opt-in: 0.5 m /
+    /// gate is processed. 0 here or in `confirmed_rotation` (the default)
+    /// turns it off. Opt-in: 0.5 m /
     /// 0.25 rad halves mit-csail's time at the same accuracy, but lost
     /// fr079-raw on every seed and gate tried (docs/PROPOSAL-2D.md,
     /// session 37).

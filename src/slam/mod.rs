@@ -61,7 +61,8 @@ pub struct Estimate<P> {
     /// particle's map (`filter.match_skipped`, 2-D) or else by odometry.
     pub pose: P,
     /// Whether the filter processed the scan (it moved enough since the last
-    /// processed one; the first scan is always processed).
+    /// processed one and, under the opt-in confirmed gate, its match did
+    /// not confirm the odometry; the first scan is always processed).
     pub processed: bool,
 }
 

@@ -388,12 +388,10 @@ impl Slam2d {
                     let f = &self.cfg.filter;
                     // Past the small gate, a scan whose match confirms the
                     // odometry is still skipped, up to the confirmed gate.
-                    let confirmed = match matching && moved && !beyond_confirmed(f, &delta) {
-                        true => levels
-                            .match_best(&delta, &scan)
-                            .filter(|m| confirms(f, &delta, m) && !beyond_confirmed(f, m)),
-                        false => None,
-                    };
+                    let confirmed = (matching && moved && !beyond_confirmed(f, &delta))
+                        .then(|| levels.match_best(&delta, &scan))
+                        .flatten()
+                        .filter(|m| confirms(f, &delta, m) && !beyond_confirmed(f, m));
                     step = moved && confirmed.is_none();
                     if step {
                         let input = StepInput {
