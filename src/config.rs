@@ -602,10 +602,9 @@ pub struct FilterConfig {
     /// good, the filter then steps about every `confirmed_translation`;
     /// where it slips, the match disagrees and every scan past the small
     /// gate is processed. 0 here or in `confirmed_rotation` (the default)
-    /// turns it off. Opt-in: 0.5 m /
-    /// 0.25 rad halves mit-csail's time at the same accuracy, but lost
-    /// fr079-raw on every seed and gate tried (docs/PROPOSAL-2D.md,
-    /// session 37).
+    /// turns it off. Opt-in: 0.5 m / 0.25 rad halves mit-csail's time at
+    /// the same accuracy, but lost fr079-raw on every seed and gate tried
+    /// (docs/PROPOSAL-2D.md, session 37).
     pub confirmed_translation: f64,
     /// ... or turned this far (rad).
     pub confirmed_rotation: f64,

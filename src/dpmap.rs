@@ -487,8 +487,8 @@ impl<const D: usize> DpMap<D> {
 
     /// Takes each brick of `work` out of the map (a new one where there is
     /// none), lets `edit` change it (given its key and work item), one
-    /// parallel task per brick, and puts it back stamped with the current version; returns
-    /// the tasks' results in `work`'s order. Bricks share no list, so the
+    /// parallel task per brick, and puts it back stamped with the current
+    /// version; returns the tasks' results in `work`'s order. Bricks share no list, so the
     /// result does not depend on the thread count.
     fn edit_bricks<W: Send, R: Send>(
         &mut self,

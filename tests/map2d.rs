@@ -449,10 +449,9 @@ fn scans_whose_match_confirms_odometry_are_skipped_and_a_slip_is_processed_scan_
     // The simulator moves 0.2 m per scan. Past the small gate (0.05 m) a
     // scan is still skipped while the best particle's match confirms the
     // odometry, up to the confirmed gate (0.5 m here; off by default):
-    // about every third scan
-    // is processed. From scan 40 to 59 the odometry reports 0.15 m more
-    // per scan than the robot drove, as a slipping wheel does: there
-    // every scan past the small gate is processed.
+    // about every third scan is processed. From scan 40 to 59 the odometry
+    // reports 0.15 m more per scan than the robot drove, as a slipping
+    // wheel does: there every scan past the small gate is processed.
     let run = |slip: bool| {
         let mut cfg = small_config();
         cfg.filter.confirmed_translation = 0.5;

@@ -46,6 +46,8 @@ pub struct PreparedLog {
 /// Reads `log` and keeps the scans `map2d` would process with `cfg`: the first,
 /// then each one after the robot moved `min_translation` or turned
 /// `min_rotation` since the last kept one; at most `max_steps` after the first.
+/// The opt-in confirmed gate (`filter.confirmed_translation`) is not applied:
+/// it needs the filter's own matches.
 pub fn prepare_log(log: &Path, cfg: &Config, max_steps: usize) -> Result<PreparedLog> {
     cfg.validate()?;
     // The "no return" threshold and usable range map2d would take.

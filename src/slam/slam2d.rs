@@ -90,8 +90,12 @@ pub fn to_scan(
 /// filter to process this one: `delta` (odometry motion, previous robot
 /// frame) of at least `min_translation` m or `min_rotation` rad.
 pub fn moved_enough(f: &FilterConfig, delta: &Pose2) -> bool {
-    delta.translation.vector.norm() >= f.min_translation
-        || delta.rotation.angle().abs() >= f.min_rotation
+    reaches(delta, f.min_translation, f.min_rotation)
+}
+
+/// Whether the motion `delta` is at least `translation` m or `rotation` rad.
+fn reaches(delta: &Pose2, translation: f64, rotation: f64) -> bool {
+    delta.translation.vector.norm() >= translation || delta.rotation.angle().abs() >= rotation
 }
 
 /// Whether the robot went far enough since the last processed scan that
@@ -101,8 +105,7 @@ pub fn moved_enough(f: &FilterConfig, delta: &Pose2) -> bool {
 pub fn beyond_confirmed(f: &FilterConfig, delta: &Pose2) -> bool {
     f.confirmed_translation <= 0.0
         || f.confirmed_rotation <= 0.0
-        || delta.translation.vector.norm() >= f.confirmed_translation
-        || delta.rotation.angle().abs() >= f.confirmed_rotation
+        || reaches(delta, f.confirmed_translation, f.confirmed_rotation)
 }
 
 /// Whether a skipped scan's match `matched` confirms the odometry motion
